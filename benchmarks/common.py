@@ -1,0 +1,70 @@
+"""Shared pieces of the benchmark scripts: machine facts, Markdown tables, composing presets."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import os
+import platform
+from collections.abc import Sequence
+from datetime import date
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+
+from hydra import compose, initialize_config_module
+
+from rlpipe.cli import register_configs, to_config
+from rlpipe.config import Config
+
+
+def parser(description: str) -> argparse.ArgumentParser:
+    """Arguments every benchmark takes: seeds and an optional Markdown file to append to."""
+    p = argparse.ArgumentParser(description=description)
+    p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    p.add_argument("--append", type=Path, help="append the table to this Markdown file")
+    return p
+
+
+def machine(packages: Sequence[str]) -> str:
+    """One line naming the machine and the versions that matter."""
+    versions = []
+    for name in packages:
+        try:
+            versions.append(f"{name} {version(name)}")
+        except PackageNotFoundError:
+            versions.append(f"{name} (not installed)")
+    cpu = platform.processor() or platform.machine()
+    return (
+        f"{date.today()} · {platform.system()} {cpu}, {os.cpu_count()} cores · "
+        f"Python {platform.python_version()} · " + ", ".join(versions)
+    )
+
+
+def table(headers: Sequence[str], rows: Sequence[Sequence[object]]) -> str:
+    """A Markdown table."""
+    lines = ["| " + " | ".join(headers) + " |", "|" + "---|" * len(headers)]
+    lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def compose_config(*overrides: str) -> Config:
+    """The same config ``python -m rlpipe <overrides>`` would run."""
+    register_configs()
+    with initialize_config_module(config_module="rlpipe.conf", version_base="1.3"):
+        return to_config(compose("config", overrides=list(overrides)))
+
+
+def read_scalar(run_dir: Path, name: str) -> list[tuple[int, float]]:
+    """(frames, value) rows of one metric written by the CSV logger."""
+    path = run_dir / "metrics" / "scalars" / f"{name}.csv"
+    with open(path) as f:
+        return [(int(step), float(value)) for step, value in csv.reader(f)]
+
+
+def publish(report: str, append: Path | None) -> None:
+    """Print the report and optionally append it to a Markdown file."""
+    print(report)
+    if append is not None:
+        with open(append, "a") as f:
+            f.write("\n" + report + "\n")
+        print(f"appended to {append}")

@@ -1,0 +1,31 @@
+"""rlpipe: reinforcement-learning pipelines from TorchRL parts, composed with Hydra."""
+
+from rlpipe.algos import ALGORITHMS, DQN, Algorithm, DQNConfig, make_algorithm
+from rlpipe.config import Config, EnvConfig, LoggerConfig
+from rlpipe.envs import make_env
+from rlpipe.errors import RlpipeError
+from rlpipe.evaluation import EvalResult, evaluate
+from rlpipe.runner import Runner, RunResult
+from rlpipe.train import make_logger, seed_everything, train
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "ALGORITHMS",
+    "DQN",
+    "Algorithm",
+    "Config",
+    "DQNConfig",
+    "EnvConfig",
+    "EvalResult",
+    "LoggerConfig",
+    "RlpipeError",
+    "RunResult",
+    "Runner",
+    "evaluate",
+    "make_algorithm",
+    "make_env",
+    "make_logger",
+    "seed_everything",
+    "train",
+]

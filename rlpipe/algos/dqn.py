@@ -1,0 +1,202 @@
+"""DQN assembled from TorchRL parts: QValueActor, EGreedyModule, Collector, ReplayBuffer,
+DQNLoss (Huber) and SoftUpdate."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+from tensordict.nn import TensorDictSequential
+from torchrl.collectors import Collector
+from torchrl.data import LazyTensorStorage, ReplayBuffer
+from torchrl.envs import EnvBase
+from torchrl.modules import EGreedyModule, QValueActor
+from torchrl.objectives import DQNLoss, SoftUpdate
+
+from rlpipe.algos.base import Metrics, episode_metrics
+from rlpipe.envs import is_discrete, observation_size
+from rlpipe.errors import RlpipeError, check
+from rlpipe.models import mlp
+
+
+@dataclass
+class DQNConfig:
+    """DQN hyper-parameters; the defaults are the workshop notebook's."""
+
+    name: str = "dqn"
+    hidden_sizes: list[int] = field(default_factory=lambda: [128, 128])
+    lr: float = 1e-4
+    weight_decay: float = 1e-2  # AdamW's default
+    amsgrad: bool = True
+    batch_size: int = 128
+    buffer_size: int = 10_000
+    gamma: float = 0.99
+    tau: float = 0.005  # soft target update: target <- tau * online + (1 - tau) * target
+    grad_clip_value: float = 100.0
+    loss: str = "smooth_l1"  # Huber
+    double_dqn: bool = False
+    eps_start: float = 0.9
+    eps_end: float = 0.05
+    eps_schedule: str = "exp"  # exp: eps_end + (eps_start - eps_end) * exp(-t / eps_decay)
+    eps_decay: int = 1000  # frames: time constant (exp) or annealing length (linear)
+    frames_per_batch: int = 1  # env frames collected per iteration (across all envs)
+    updates_per_batch: int = 1  # gradient steps per iteration
+    learning_starts: int = 128  # frames collected before the first update
+
+    def __post_init__(self) -> None:
+        check(self.lr > 0, f"algo.lr must be > 0, got {self.lr}")
+        check(self.batch_size >= 1, f"algo.batch_size must be >= 1, got {self.batch_size}")
+        check(
+            self.buffer_size >= self.batch_size,
+            f"algo.buffer_size ({self.buffer_size}) must be >= algo.batch_size ({self.batch_size})",
+        )
+        check(0 < self.gamma <= 1, f"algo.gamma must be in (0, 1], got {self.gamma}")
+        check(0 < self.tau <= 1, f"algo.tau must be in (0, 1], got {self.tau}")
+        check(
+            self.eps_schedule in ("exp", "linear"),
+            f"algo.eps_schedule must be 'exp' or 'linear', got {self.eps_schedule!r}",
+        )
+        check(
+            0 <= self.eps_end <= self.eps_start <= 1,
+            f"need 0 <= algo.eps_end <= algo.eps_start <= 1, got {self.eps_end}, {self.eps_start}",
+        )
+        check(self.eps_decay >= 1, f"algo.eps_decay must be >= 1, got {self.eps_decay}")
+        check(
+            self.loss in ("smooth_l1", "l2", "l1"),
+            f"algo.loss must be one of smooth_l1, l2, l1; got {self.loss!r}",
+        )
+        check(
+            self.frames_per_batch >= 1,
+            f"algo.frames_per_batch must be >= 1, got {self.frames_per_batch}",
+        )
+        check(
+            self.updates_per_batch >= 0,
+            f"algo.updates_per_batch must be >= 0, got {self.updates_per_batch}",
+        )
+        check(self.learning_starts >= 0, "algo.learning_starts must be >= 0")
+        check(
+            all(h >= 1 for h in self.hidden_sizes),
+            f"algo.hidden_sizes must be positive, got {self.hidden_sizes}",
+        )
+
+
+_STORED_KEYS = (
+    "observation",
+    "action",
+    ("next", "observation"),
+    ("next", "reward"),
+    ("next", "done"),
+    ("next", "terminated"),
+)
+
+
+def epsilon(frames: int, cfg: DQNConfig) -> float:
+    """Exploration rate after ``frames`` env frames (exponential or linear decay)."""
+    if cfg.eps_schedule == "exp":
+        return cfg.eps_end + (cfg.eps_start - cfg.eps_end) * math.exp(-frames / cfg.eps_decay)
+    fraction = min(frames / cfg.eps_decay, 1.0)
+    return cfg.eps_start + fraction * (cfg.eps_end - cfg.eps_start)
+
+
+class DQN:
+    """Deep Q-learning on a batched TorchRL env with a discrete action space.
+
+    Each :meth:`train_step` collects ``cfg.frames_per_batch`` frames with the ε-greedy policy,
+    stores them in the replay buffer and runs ``cfg.updates_per_batch`` gradient steps, each
+    followed by a soft target update.
+    """
+
+    def __init__(self, env: EnvBase, cfg: DQNConfig, *, device: str | torch.device = "cpu"):
+        if not is_discrete(env):
+            raise RlpipeError(
+                f"DQN needs a discrete action space, but this env's actions are "
+                f"{type(env.action_spec_unbatched).__name__} (continuous); pick a discrete env "
+                "(cartpole, mountaincar, lunarlander) or another algorithm"
+            )
+        self.cfg = cfg
+        self.device = torch.device(device)
+        self.frames = 0
+        spec = env.action_spec_unbatched.to(self.device)
+        net = mlp(observation_size(env), spec.space.n, cfg.hidden_sizes).to(self.device)
+        self.policy = QValueActor(net, in_keys=["observation"], spec=spec)
+        self.exploration = EGreedyModule(
+            spec, eps_init=cfg.eps_start, eps_end=cfg.eps_end, device=self.device
+        )
+        self.exploration.eps.fill_(epsilon(0, cfg))
+        self.loss = DQNLoss(
+            self.policy,
+            loss_function=cfg.loss,
+            delay_value=True,
+            double_dqn=cfg.double_dqn,
+            action_space=spec,
+        )
+        self.loss.make_value_estimator(gamma=cfg.gamma)
+        self.target_updater = SoftUpdate(self.loss, tau=cfg.tau)
+        self.optimizer = torch.optim.AdamW(
+            self.loss.parameters(),
+            lr=cfg.lr,
+            weight_decay=cfg.weight_decay,
+            amsgrad=cfg.amsgrad,
+            fused=True,  # one kernel for all parameters: a third of the step time on CPU
+        )
+        self.buffer = ReplayBuffer(
+            storage=LazyTensorStorage(cfg.buffer_size, device=self.device),
+            batch_size=cfg.batch_size,
+        )
+        num_envs = max(env.batch_size.numel(), 1)
+        frames_per_batch = math.ceil(cfg.frames_per_batch / num_envs) * num_envs
+        self.collector = Collector(
+            env,
+            TensorDictSequential(self.policy, self.exploration),
+            frames_per_batch=frames_per_batch,
+            total_frames=-1,
+            policy_device=self.device,
+            storing_device=self.device,
+        )
+        self._batches = iter(self.collector)
+        # On one device the collector steps this very policy; otherwise it holds a copy.
+        self._copy_weights = self.device != torch.device(env.device)
+
+    def train_step(self) -> Metrics:
+        batch = next(self._batches)
+        self.frames += batch.numel()
+        self.exploration.eps.fill_(epsilon(self.frames, self.cfg))
+        self.buffer.extend(batch.reshape(-1).select(*_STORED_KEYS))
+        metrics: Metrics = {"train/epsilon": float(self.exploration.eps)}
+        metrics.update(episode_metrics(batch))
+        if len(self.buffer) < max(self.cfg.learning_starts, self.cfg.batch_size):
+            return metrics
+        losses = []
+        for _ in range(self.cfg.updates_per_batch):
+            loss = self.loss(self.buffer.sample())["loss"]
+            self.optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_value_(self.loss.parameters(), self.cfg.grad_clip_value)
+            self.optimizer.step()
+            self.target_updater.step()
+            losses.append(loss.detach())
+        if losses:
+            metrics["train/loss"] = float(torch.stack(losses).mean())
+        if self._copy_weights:
+            self.collector.update_policy_weights_()
+        return metrics
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "loss": self.loss.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "frames": self.frames,
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.loss.load_state_dict(state["loss"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.frames = int(state["frames"])
+        self.exploration.eps.fill_(epsilon(self.frames, self.cfg))
+        self.collector.update_policy_weights_()
+
+    def close(self) -> None:
+        """Stop the collector and close its env."""
+        self.collector.shutdown()

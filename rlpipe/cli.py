@@ -1,0 +1,81 @@
+"""Hydra glue for the command line: config registration and one-line error reporting."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import sys
+from collections.abc import Callable, Iterator
+from typing import Any, NoReturn
+
+from hydra.core.config_store import ConfigStore
+from hydra.errors import HydraException, MissingConfigException
+from omegaconf import MISSING, DictConfig, OmegaConf
+from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
+
+from rlpipe.algos import ALGORITHMS
+from rlpipe.config import Config, EnvConfig
+from rlpipe.errors import RlpipeError
+
+USER_ERRORS = (RlpipeError, HydraException, OmegaConfBaseException)
+
+
+def register_configs() -> None:
+    """Store the dataclass schemas so Hydra type-checks every config file and override."""
+    store = ConfigStore.instance()
+    # env.id has no default on the command line: every conf/env file (or env.id=...) sets it
+    store.store(name="rlpipe_config", node=Config(env=EnvConfig(id=MISSING)))
+    for name, (schema, _) in ALGORITHMS.items():
+        store.store(group="schema/algo", name=name, node=schema)
+
+
+def _unknown_keys(node: DictConfig, prefix: str = "") -> Iterator[str]:
+    """Keys added with ``+key=...`` that the node's dataclass schema does not have."""
+    schema = OmegaConf.get_type(node)
+    if not dataclasses.is_dataclass(schema):
+        return
+    names = {f.name for f in dataclasses.fields(schema)}
+    for key in node.keys():
+        if key not in names:
+            yield f"{prefix}{key}"
+        elif isinstance(node._get_node(key), DictConfig):
+            yield from _unknown_keys(node[key], f"{prefix}{key}.")
+
+
+def to_config(cfg: DictConfig) -> Config:
+    """Turn Hydra's composed config into :class:`Config` objects (running their checks)."""
+    unknown = list(_unknown_keys(cfg))
+    if unknown:
+        raise RlpipeError(f"unknown config key {unknown[0]!r}; see `python -m rlpipe --cfg job`")
+    return OmegaConf.to_object(cfg)
+
+
+def format_error(err: BaseException) -> str:
+    """Squeeze a user error into one line naming the problem (and the valid choices)."""
+    if isinstance(err, MissingConfigException) and err.options and err.missing_cfg_file:
+        group, _, name = err.missing_cfg_file.rpartition("/")
+        return f"unknown {group} option {name!r}; choose one of: {', '.join(err.options)}"
+    if isinstance(err, MissingMandatoryValue):
+        return f"{err.full_key} must be set, e.g. python -m rlpipe {err.full_key}=<value>"
+    first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+    cause = err.__cause__
+    if isinstance(cause, RlpipeError):
+        return str(cause)
+    if isinstance(cause, (MissingMandatoryValue, OmegaConfBaseException)):
+        return f"{first.rstrip('.')}: {format_error(cause)}"
+    return first
+
+
+def fail(err: BaseException) -> NoReturn:
+    """Print ``rlpipe: error: <one line>`` to stderr and exit with code 2."""
+    print(f"rlpipe: error: {format_error(err)}", file=sys.stderr)
+    sys.exit(2)
+
+
+def run_cli(hydra_main: Callable[[], Any]) -> None:
+    """Call a ``@hydra.main`` function; user errors become one line on stderr and exit 2."""
+    os.environ.setdefault("HYDRA_FULL_ERROR", "1")  # let errors reach us instead of Hydra's print
+    try:
+        hydra_main()
+    except USER_ERRORS as err:
+        fail(err)

@@ -1,0 +1,88 @@
+"""Environment factory: gymnasium ids -> batched TorchRL envs with the standard transforms."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+from gymnasium.vector import AutoresetMode
+from torchrl.data import Categorical, OneHot
+from torchrl.envs import (
+    Compose,
+    DoubleToFloat,
+    EnvBase,
+    GymWrapper,
+    InitTracker,
+    RewardSum,
+    StepCounter,
+    TransformedEnv,
+)
+
+from rlpipe.config import EnvConfig
+from rlpipe.errors import RlpipeError
+
+__all__ = ["make_env", "observation_size", "is_discrete", "num_actions"]
+
+
+def make_env(
+    cfg: EnvConfig,
+    *,
+    num_envs: int | None = None,
+    seed: int | None = None,
+    device: str = "cpu",
+    render_mode: str | None = None,
+) -> TransformedEnv:
+    """Build ``num_envs`` (default ``cfg.num_envs``) copies of ``cfg.id`` stepped as one batch.
+
+    The copies live in a gymnasium ``SyncVectorEnv`` with autoreset DISABLED, wrapped by
+    TorchRL's ``GymWrapper`` (partial resets go through gymnasium's ``reset_mask``), plus
+    ``DoubleToFloat``, ``StepCounter``, ``InitTracker`` and ``RewardSum`` (``episode_reward``).
+    Actions of discrete spaces are integer indices (``Categorical`` spec).
+    """
+    n = cfg.num_envs if num_envs is None else num_envs
+    if n < 1:
+        raise RlpipeError(f"num_envs must be >= 1, got {n}")
+    kwargs = dict(cfg.kwargs)
+    if cfg.max_episode_steps is not None:
+        kwargs["max_episode_steps"] = cfg.max_episode_steps
+    if render_mode is not None:
+        kwargs["render_mode"] = render_mode
+    try:
+        venv = gym.make_vec(
+            cfg.id,
+            num_envs=n,
+            vectorization_mode="sync",
+            vector_kwargs={"autoreset_mode": AutoresetMode.DISABLED},
+            **kwargs,
+        )
+    except gym.error.Error as err:
+        raise RlpipeError(
+            f"cannot make gymnasium env {cfg.id!r}: {err} (pick a config from conf/env or "
+            "set env.id to any registered gymnasium id)"
+        ) from err
+    except TypeError as err:
+        raise RlpipeError(f"bad env.kwargs for {cfg.id!r}: {err}") from err
+    base = GymWrapper(venv, categorical_action_encoding=True, device=device)
+    env = TransformedEnv(base, Compose(DoubleToFloat(), StepCounter(), InitTracker(), RewardSum()))
+    if seed is not None:
+        env.set_seed(seed)
+    return env
+
+
+def observation_size(env: EnvBase, key: str = "observation") -> int:
+    """Length of the flat observation vector; a clear error for image or dict observations."""
+    spec = env.observation_spec_unbatched
+    if key not in spec.keys() or len(spec[key].shape) != 1:
+        shapes = {k: tuple(v.shape) for k, v in spec.items(include_nested=True, leaves_only=True)}
+        raise RlpipeError(
+            f"this algorithm needs a flat vector observation under {key!r}; the env gives {shapes}"
+        )
+    return int(spec[key].shape[0])
+
+
+def is_discrete(env: EnvBase) -> bool:
+    """Whether the env's action space is a finite set of actions."""
+    return isinstance(env.action_spec_unbatched, (Categorical, OneHot))
+
+
+def num_actions(env: EnvBase) -> int:
+    """Number of discrete actions (only for discrete action spaces)."""
+    return int(env.action_spec_unbatched.space.n)

@@ -1,0 +1,62 @@
+"""Greedy evaluation of a policy over a fixed number of complete episodes."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+from tensordict.nn import TensorDictModuleBase
+from torchrl.envs import EnvBase, ExplorationType, set_exploration_type
+
+
+@dataclass
+class EvalResult:
+    """Returns and lengths of the evaluated episodes."""
+
+    returns: list[float] = field(default_factory=list)
+    lengths: list[int] = field(default_factory=list)
+
+    @property
+    def mean(self) -> float:
+        return float(torch.tensor(self.returns).mean())
+
+    @property
+    def std(self) -> float:
+        return float(torch.tensor(self.returns).std(unbiased=False))
+
+    def metrics(self, prefix: str = "eval/") -> dict[str, float]:
+        """Summary statistics, named for the logger."""
+        returns = torch.tensor(self.returns)
+        return {
+            f"{prefix}return_mean": self.mean,
+            f"{prefix}return_std": self.std,
+            f"{prefix}return_min": float(returns.min()),
+            f"{prefix}return_max": float(returns.max()),
+            f"{prefix}length_mean": float(torch.tensor(self.lengths, dtype=torch.float).mean()),
+        }
+
+
+@torch.no_grad()
+def evaluate(policy: TensorDictModuleBase, env: EnvBase, episodes: int) -> EvalResult:
+    """Run ``episodes`` complete episodes of ``policy`` in deterministic mode on ``env``.
+
+    The env's batch of ``n`` copies runs in lock-step; copy ``i`` contributes its first
+    ``episodes // n`` (+1 for the first ``episodes % n`` copies) episodes, so short episodes
+    are not over-represented. Finished copies are reset and their extra episodes ignored.
+    """
+    n = env.batch_size.numel()
+    remaining = torch.tensor([episodes // n + (i < episodes % n) for i in range(n)])
+    result = EvalResult()
+    policy_device = next(policy.parameters(), torch.empty(0)).device
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        td = env.reset()
+        while bool((remaining > 0).any()):
+            td = policy(td.to(policy_device)).to(env.device)
+            td, td_next = env.step_and_maybe_reset(td)
+            counted = td["next", "done"].reshape(n) & (remaining > 0)
+            if bool(counted.any()):
+                result.returns += td["next", "episode_reward"].reshape(n)[counted].tolist()
+                result.lengths += td["next", "step_count"].reshape(n)[counted].tolist()
+                remaining -= counted.long()
+            td = td_next
+    return result

@@ -1,0 +1,39 @@
+"""Shared helpers: run the command-line entry points in a subprocess."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+TINY = ["progress=false", "total_frames=200", "eval_every=100", "eval_episodes=2"]
+
+
+def run_module(
+    module: str, *args: str, cwd: Path, timeout: float = 300
+) -> subprocess.CompletedProcess:
+    """``python -m <module> args...`` in ``cwd``; returns the completed process (text output)."""
+    env = {**os.environ, "SDL_VIDEODRIVER": "dummy"}
+    env.pop("HYDRA_FULL_ERROR", None)
+    return subprocess.run(
+        [sys.executable, "-m", module, *args],
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+
+
+@pytest.fixture
+def rlpipe_cli(tmp_path: Path):
+    """Run ``python -m rlpipe`` with the run dir inside ``tmp_path``."""
+
+    def run(*args: str, run_dir: Path | None = None) -> subprocess.CompletedProcess:
+        run_dir = run_dir or tmp_path / "run"
+        return run_module("rlpipe", *args, f"hydra.run.dir={run_dir}", cwd=tmp_path)
+
+    return run

@@ -1,0 +1,77 @@
+"""Smoke tests of ``python -m rlpipe`` through a subprocess, including every bad input."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from conftest import TINY
+
+
+def test_default_job_trains_and_writes_its_run_dir(rlpipe_cli, tmp_path):
+    proc = rlpipe_cli(*TINY, "checkpoint_every=100")
+    assert proc.returncode == 0, proc.stderr
+    run = tmp_path / "run"
+    assert "final eval" in proc.stdout and str(run) in proc.stdout
+    assert json.loads((run / "summary.json").read_text())["frames"] == 200
+    assert (run / ".hydra" / "config.yaml").exists()
+    assert sorted(p.name for p in (run / "checkpoints").iterdir()) == [
+        "ckpt_000000000100.pt",
+        "ckpt_000000000200.pt",
+    ]
+    assert (run / "metrics" / "scalars" / "eval" / "return_mean.csv").exists()
+
+
+def test_groups_compose_from_the_command_line(rlpipe_cli, tmp_path):
+    proc = rlpipe_cli(*TINY, "algo=dqn", "env=mountaincar", "logger=none", "env.num_envs=2")
+    assert proc.returncode == 0, proc.stderr
+    assert not (tmp_path / "run" / "metrics").exists()
+    assert (tmp_path / "run" / "summary.json").exists()
+
+
+def test_generic_gym_entry(rlpipe_cli):
+    proc = rlpipe_cli(*TINY, "env=gym", "env.id=Acrobot-v1")
+    assert proc.returncode == 0, proc.stderr
+
+
+def test_multirun_sweeps_seeds(tmp_path):
+    from conftest import run_module
+
+    proc = run_module(
+        "rlpipe", "-m", *TINY, "seed=0,1", f"hydra.sweep.dir={tmp_path / 'sweep'}", cwd=tmp_path
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert sorted(p.name for p in (tmp_path / "sweep").iterdir() if p.is_dir()) == ["0", "1"]
+    assert all((tmp_path / "sweep" / d / "summary.json").exists() for d in "01")
+
+
+BAD_INPUTS = [
+    (["algo=nope"], "unknown algo option 'nope'; choose one of: dqn"),
+    (["env=nope"], "unknown env option 'nope'; choose one of: bipedal"),
+    (["logger=nope"], "unknown logger option 'nope'; choose one of: csv, none"),
+    (["env=gym", "env.id=NoSuchEnv-v0"], "cannot make gymnasium env 'NoSuchEnv-v0'"),
+    (["env=gym"], "env.id must be set"),
+    (["algo.lrr=1"], "Key 'lrr' not in 'DQNConfig'"),
+    (["total_frame=5"], "Key 'total_frame' not in 'Config'"),
+    (["+foo=1"], "unknown config key 'foo'"),
+    (["seed=abc"], "could not be converted to Integer"),
+    (["algo.lr=fast"], "could not be converted to Float"),
+    (["env=pendulum"], "DQN needs a discrete action space"),
+    (["env=bipedal"], "DQN needs a discrete action space"),
+    (["total_frames=0"], "total_frames must be >= 1"),
+    (["total_frames=-100"], "total_frames must be >= 1"),
+    (["eval_episodes=0"], "eval_episodes must be >= 1"),
+    (["device=tpu"], "device must be auto, cpu, cuda or cuda:N"),
+]
+
+
+@pytest.mark.parametrize("args, message", BAD_INPUTS, ids=[" ".join(a) for a, _ in BAD_INPUTS])
+def test_bad_input_is_one_clear_line(rlpipe_cli, tmp_path, args, message):
+    proc = rlpipe_cli("progress=false", *args)
+    assert proc.returncode == 2
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, proc.stderr
+    assert lines[0].startswith("rlpipe: error: ") and message in lines[0]
+    assert "Traceback" not in proc.stdout + proc.stderr
+    run = tmp_path / "run"
+    assert not (run / "checkpoints").exists() and not (run / "metrics").exists()

@@ -1,0 +1,118 @@
+"""Config schemas, Hydra composition of every group option, and value checks."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_module
+from hydra.errors import ConfigCompositionException
+
+from rlpipe.algos import DQNConfig
+from rlpipe.cli import register_configs, to_config
+from rlpipe.config import Config, EnvConfig, LoggerConfig
+from rlpipe.errors import RlpipeError
+
+CONF = Path(__file__).resolve().parents[1] / "conf"
+register_configs()
+
+
+def compose_config(*overrides: str) -> Config:
+    with initialize_config_module(config_module="rlpipe.conf", version_base="1.3"):
+        return to_config(compose("config", overrides=list(overrides)))
+
+
+def test_default_is_dqn_on_cartpole():
+    cfg = compose_config()
+    assert isinstance(cfg.algo, DQNConfig)
+    assert cfg.env.id == "CartPole-v1"
+    assert cfg.logger.backend == "csv"
+    assert (cfg.algo.hidden_sizes, cfg.algo.batch_size, cfg.algo.buffer_size) == (
+        [128, 128],
+        128,
+        10_000,
+    )
+    assert (cfg.algo.lr, cfg.algo.tau, cfg.algo.gamma) == (1e-4, 0.005, 0.99)
+
+
+EXPECTED_IDS = {
+    "cartpole": "CartPole-v1",
+    "mountaincar": "MountainCar-v0",
+    "lunarlander": "LunarLander-v3",
+    "pendulum": "Pendulum-v1",
+    "bipedal": "BipedalWalker-v3",
+    "bipedal_hardcore": "BipedalWalker-v3",
+}
+
+
+@pytest.mark.parametrize("name", sorted(EXPECTED_IDS))
+def test_env_group_options(name):
+    cfg = compose_config(f"env={name}")
+    assert cfg.env.id == EXPECTED_IDS[name]
+    assert cfg.env.kwargs.get("hardcore", False) == (name == "bipedal_hardcore")
+
+
+def test_every_env_file_is_tested():
+    assert {p.stem for p in (CONF / "env").glob("*.yaml")} == set(EXPECTED_IDS) | {"gym"}
+
+
+def test_generic_gym_entry_takes_an_id():
+    assert compose_config("env=gym", "env.id=Acrobot-v1").env.id == "Acrobot-v1"
+
+
+def test_generic_gym_entry_without_id_fails():
+    with pytest.raises(Exception, match="env.id"):
+        compose_config("env=gym")
+
+
+@pytest.mark.parametrize("logger", ["csv", "none"])
+def test_logger_options(logger):
+    assert compose_config(f"logger={logger}").logger.backend == logger
+
+
+def test_experiment_preset_composes():
+    cfg = compose_config("+experiment=dqn_cartpole")
+    assert cfg.env.id == "CartPole-v1" and cfg.env.num_envs > 1
+    assert cfg.total_frames <= 50_000
+
+
+@pytest.mark.parametrize(
+    "override",
+    ["algo.lrr=1", "total_frame=5", "algo.lr=abc", "seed=1.5", "env.num_envs=x"],
+)
+def test_typos_and_wrong_types_fail_at_composition(override):
+    with pytest.raises(ConfigCompositionException):
+        compose_config(override)
+
+
+@pytest.mark.parametrize("override", ["+foo=1", "+algo.foo=2", "+env.bar=3"])
+def test_added_keys_are_refused(override):
+    with pytest.raises(RlpipeError, match="unknown config key"):
+        compose_config(override)
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("total_frames=0", "total_frames"),
+        ("total_frames=-5", "total_frames"),
+        ("eval_episodes=0", "eval_episodes"),
+        ("keep_checkpoints=0", "keep_checkpoints"),
+        ("env.num_envs=0", "num_envs"),
+        ("algo.lr=0", "algo.lr"),
+        ("algo.gamma=1.5", "gamma"),
+        ("algo.buffer_size=10", "buffer_size"),
+        ("algo.eps_schedule=cosine", "eps_schedule"),
+        ("logger.backend=x", "logger.backend"),
+    ],
+)
+def test_bad_values_fail_with_a_named_key(override, message):
+    with pytest.raises(RlpipeError, match=message):
+        compose_config(override)
+
+
+def test_plain_dataclasses_work_without_hydra():
+    cfg = Config(env=EnvConfig(id="Acrobot-v1", num_envs=2), algo=DQNConfig(lr=3e-4))
+    assert cfg.algo.name == "dqn" and cfg.logger == LoggerConfig()
+    with pytest.raises(RlpipeError):
+        DQNConfig(batch_size=0)

@@ -1,0 +1,115 @@
+"""DQN from TorchRL parts: shapes, the loss, the exploration schedule, one iteration."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from rlpipe.algos import DQN, Algorithm, DQNConfig
+from rlpipe.algos.dqn import epsilon
+from rlpipe.config import EnvConfig
+from rlpipe.envs import make_env
+from rlpipe.errors import RlpipeError
+
+SMALL = dict(
+    batch_size=8, buffer_size=64, learning_starts=8, frames_per_batch=8, updates_per_batch=2
+)
+
+
+@pytest.fixture
+def dqn():
+    torch.manual_seed(0)
+    algo = DQN(make_env(EnvConfig(num_envs=2), seed=0), DQNConfig(**SMALL))
+    yield algo
+    algo.close()
+
+
+def test_is_an_algorithm_with_notebook_network(dqn):
+    assert isinstance(dqn, Algorithm)
+    linears = [m for m in dqn.policy.modules() if isinstance(m, torch.nn.Linear)]
+    assert [(m.in_features, m.out_features) for m in linears] == [(4, 128), (128, 128), (128, 2)]
+    assert dqn.cfg.loss == "smooth_l1"
+
+
+def test_greedy_policy_outputs_actions(dqn):
+    td = make_env(EnvConfig(num_envs=5)).reset()
+    out = dqn.policy(td)
+    assert out["action"].shape == (5,)
+    assert out["action_value"].shape == (5, 2)
+    assert torch.equal(out["action"], out["action_value"].argmax(-1))
+
+
+def test_loss_forward_backward_moves_the_online_net_only(dqn):
+    while len(dqn.buffer) < 16:
+        dqn.train_step()
+    batch = dqn.buffer.sample()
+    assert batch.batch_size == torch.Size([8])
+    loss = dqn.loss(batch)["loss"]
+    assert loss.ndim == 0 and torch.isfinite(loss)
+    before = [p.detach().clone() for p in dqn.loss.parameters()]
+    target_before = dqn.loss.target_value_network_params.clone()
+    dqn.optimizer.zero_grad()
+    loss.backward()
+    assert all(p.grad is not None for p in dqn.loss.parameters())
+    dqn.optimizer.step()
+    assert any(not torch.equal(a, b) for a, b in zip(before, dqn.loss.parameters()))
+    assert (dqn.loss.target_value_network_params == target_before).all()
+
+
+def test_soft_update_moves_target_by_tau(dqn):
+    online = dqn.loss.value_network_params.clone()
+    target = dqn.loss.target_value_network_params
+    with torch.no_grad():
+        for t in target.values(True, True):
+            t.zero_()
+    dqn.target_updater.step()
+    for key, value in target.items(True, True):
+        torch.testing.assert_close(value, dqn.cfg.tau * online[key])
+
+
+def test_epsilon_schedules():
+    cfg = DQNConfig()  # notebook: 0.9 -> 0.05, exponential with time constant 1000
+    assert epsilon(0, cfg) == pytest.approx(0.9)
+    assert epsilon(1000, cfg) == pytest.approx(0.05 + 0.85 * math.exp(-1))
+    assert epsilon(10**6, cfg) == pytest.approx(0.05)
+    lin = DQNConfig(eps_schedule="linear", eps_start=1.0, eps_end=0.1, eps_decay=100)
+    assert [round(epsilon(t, lin), 6) for t in (0, 50, 100, 1000)] == [1.0, 0.55, 0.1, 0.1]
+
+
+def test_train_step_collects_updates_and_reports(dqn):
+    first = dqn.train_step()
+    assert dqn.frames == 8 and len(dqn.buffer) == 8
+    assert "train/loss" not in first or dqn.cfg.learning_starts <= 8
+    metrics = {}
+    while dqn.frames < 200:
+        metrics.update(dqn.train_step())
+    assert dqn.frames == 200
+    assert metrics["train/epsilon"] == pytest.approx(epsilon(200, dqn.cfg))
+    assert math.isfinite(metrics["train/loss"])
+    assert all(r >= 1 for r in metrics["train/episode_return"])
+
+
+def test_frames_per_batch_rounds_up_to_whole_env_steps():
+    algo = DQN(make_env(EnvConfig(num_envs=3)), DQNConfig(**{**SMALL, "frames_per_batch": 4}))
+    algo.train_step()
+    assert algo.frames == 6
+    algo.close()
+
+
+def test_state_dict_round_trip(dqn):
+    for _ in range(5):
+        dqn.train_step()
+    state = dqn.state_dict()
+    other = DQN(make_env(EnvConfig(num_envs=2)), DQNConfig(**SMALL))
+    other.load_state_dict(state)
+    assert other.frames == dqn.frames
+    td = make_env(EnvConfig(num_envs=4), seed=3).reset()
+    assert torch.equal(other.policy(td.clone())["action"], dqn.policy(td.clone())["action"])
+    other.close()
+
+
+def test_continuous_actions_are_refused():
+    with pytest.raises(RlpipeError, match="discrete action space"):
+        DQN(make_env(EnvConfig(id="Pendulum-v1")), DQNConfig())
