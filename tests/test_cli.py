@@ -46,7 +46,7 @@ def test_multirun_sweeps_seeds(tmp_path):
 
 
 BAD_INPUTS = [
-    (["algo=nope"], "unknown algo option 'nope'; choose one of: dqn"),
+    (["algo=nope"], "unknown algo option 'nope'; choose one of: "),
     (["env=nope"], "unknown env option 'nope'; choose one of: bipedal"),
     (["logger=nope"], "unknown logger option 'nope'; choose one of: csv, none"),
     (["env=gym", "env.id=NoSuchEnv-v0"], "cannot make gymnasium env 'NoSuchEnv-v0'"),
@@ -73,5 +73,7 @@ def test_bad_input_is_one_clear_line(rlpipe_cli, tmp_path, args, message):
     assert len(lines) == 1, proc.stderr
     assert lines[0].startswith("rlpipe: error: ") and message in lines[0]
     assert "Traceback" not in proc.stdout + proc.stderr
+    if args[0] == "algo=nope":
+        assert "dqn" in lines[0].split("choose one of: ")[1].split(", ")
     run = tmp_path / "run"
     assert not (run / "checkpoints").exists() and not (run / "metrics").exists()
