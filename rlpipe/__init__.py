@@ -1,10 +1,21 @@
 """rlpipe: reinforcement-learning pipelines from TorchRL parts, composed with Hydra."""
 
-from rlpipe.algos import ALGORITHMS, DQN, Algorithm, DQNConfig, make_algorithm
+from rlpipe.algos import (
+    ALGORITHMS,
+    ARS,
+    DQN,
+    Algorithm,
+    ARSConfig,
+    DQNConfig,
+    Reinforce,
+    ReinforceConfig,
+    make_algorithm,
+)
 from rlpipe.config import Config, EnvConfig, LoggerConfig
 from rlpipe.envs import make_env
 from rlpipe.errors import RlpipeError
 from rlpipe.evaluation import EvalResult, evaluate
+from rlpipe.evolution import ARSSearch, Normalizer
 from rlpipe.runner import Runner, RunResult
 from rlpipe.train import make_logger, seed_everything, train
 
@@ -12,6 +23,9 @@ __version__ = "0.1.0"
 
 __all__ = [
     "ALGORITHMS",
+    "ARS",
+    "ARSConfig",
+    "ARSSearch",
     "DQN",
     "Algorithm",
     "Config",
@@ -19,6 +33,9 @@ __all__ = [
     "EnvConfig",
     "EvalResult",
     "LoggerConfig",
+    "Normalizer",
+    "Reinforce",
+    "ReinforceConfig",
     "RlpipeError",
     "RunResult",
     "Runner",

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+
 import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
@@ -25,6 +27,7 @@ def _hydra_main(cfg: DictConfig) -> float:
 
 def main() -> None:
     """Console entry point (also ``rlpipe`` on the PATH)."""
+    logging.getLogger("torchrl").setLevel(logging.WARNING)  # keep the console to progress + summary
     run_cli(_hydra_main)
 
 

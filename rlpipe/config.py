@@ -64,6 +64,7 @@ class Config:
     checkpoint_every: int = 25_000  # frames between checkpoints (0: only at the end)
     keep_checkpoints: int = 3
     progress: bool = True
+    threads: int = 0  # torch intra-op threads; 0: torch's default (one per core)
 
     def __post_init__(self) -> None:
         check(self.total_frames >= 1, f"total_frames must be >= 1, got {self.total_frames}")
@@ -73,6 +74,7 @@ class Config:
             self.checkpoint_every >= 0,
             f"checkpoint_every must be >= 0, got {self.checkpoint_every}",
         )
+        check(self.threads >= 0, f"threads must be >= 0, got {self.threads}")
         check(
             self.keep_checkpoints >= 1,
             f"keep_checkpoints must be >= 1, got {self.keep_checkpoints}",

@@ -54,12 +54,19 @@ def train(cfg: Config, run_dir: str | Path) -> RunResult:
     """
     device = resolve_device(cfg.device)
     seed_everything(cfg.seed)
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
     env = make_env(cfg.env, seed=cfg.seed)
     eval_env = make_env(
         cfg.env, num_envs=min(cfg.eval_episodes, MAX_EVAL_ENVS), seed=cfg.seed + 10_000
     )
     try:
-        algo = make_algorithm(env, cfg.algo, device=device)
+        algo = make_algorithm(env, cfg.algo, device=device)  # from here on, algo owns env
+    except BaseException:
+        env.close()
+        eval_env.close()
+        raise
+    try:
         runner = Runner(
             algo,
             eval_env,
@@ -75,6 +82,5 @@ def train(cfg: Config, run_dir: str | Path) -> RunResult:
         )
         return runner.run()
     finally:
+        algo.close()
         eval_env.close()
-        if not env.is_closed:
-            env.close()

@@ -37,3 +37,19 @@ def rlpipe_cli(tmp_path: Path):
         return run_module("rlpipe", *args, f"hydra.run.dir={run_dir}", cwd=tmp_path)
 
     return run
+
+
+@pytest.fixture
+def image_env_id() -> str:
+    """A registered gymnasium id whose observation is an image (not a flat vector)."""
+    import gymnasium as gym
+
+    env_id = "rlpipe/ImageCartPole-v0"
+    if env_id not in gym.registry:
+        gym.register(
+            env_id,
+            entry_point=lambda **kw: gym.wrappers.AddRenderObservation(
+                gym.make("CartPole-v1", render_mode="rgb_array"), render_only=True
+            ),
+        )
+    return env_id

@@ -42,6 +42,8 @@ EXPECTED_IDS = {
     "pendulum": "Pendulum-v1",
     "bipedal": "BipedalWalker-v3",
     "bipedal_hardcore": "BipedalWalker-v3",
+    "cartpole_continuous": "rlpipe/CartPoleContinuous-v0",
+    "cartpole_noop": "rlpipe/CartPoleNoop-v0",
 }
 
 

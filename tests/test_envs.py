@@ -64,16 +64,7 @@ def test_bad_kwargs_are_a_clear_error():
         make_env(EnvConfig(id="CartPole-v1", kwargs={"no_such_option": 1}))
 
 
-def test_non_flat_observation_is_rejected():
-    import gymnasium as gym
-
-    if "rlpipe/ImageCartPole-v0" not in gym.registry:
-        gym.register(
-            "rlpipe/ImageCartPole-v0",
-            entry_point=lambda **kw: gym.wrappers.AddRenderObservation(
-                gym.make("CartPole-v1", render_mode="rgb_array"), render_only=True
-            ),
-        )
-    env = make_env(EnvConfig(id="rlpipe/ImageCartPole-v0"))
+def test_non_flat_observation_is_rejected(image_env_id):
+    env = make_env(EnvConfig(id=image_env_id))
     with pytest.raises(RlpipeError, match="flat vector observation"):
         observation_size(env)

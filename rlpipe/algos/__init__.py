@@ -8,15 +8,30 @@ from typing import Any
 import torch
 from torchrl.envs import EnvBase
 
+from rlpipe.algos.ars import ARS, ARSConfig
 from rlpipe.algos.base import Algorithm, Metrics
 from rlpipe.algos.dqn import DQN, DQNConfig
+from rlpipe.algos.reinforce import Reinforce, ReinforceConfig
 from rlpipe.errors import RlpipeError
 
-__all__ = ["ALGORITHMS", "Algorithm", "Metrics", "DQN", "DQNConfig", "make_algorithm"]
+__all__ = [
+    "ALGORITHMS",
+    "ARS",
+    "ARSConfig",
+    "Algorithm",
+    "Metrics",
+    "DQN",
+    "DQNConfig",
+    "Reinforce",
+    "ReinforceConfig",
+    "make_algorithm",
+]
 
 # name -> (config dataclass, builder(env, cfg, device) -> Algorithm)
 ALGORITHMS: dict[str, tuple[type, Callable[..., Algorithm]]] = {
     "dqn": (DQNConfig, DQN),
+    "reinforce": (ReinforceConfig, Reinforce),
+    "ars": (ARSConfig, ARS),
 }
 
 

@@ -27,6 +27,10 @@ class Algorithm(Protocol):
 
     def load_state_dict(self, state: dict[str, Any]) -> None: ...
 
+    def close(self) -> None:
+        """Release the env the algorithm was given and any workers or collectors it started."""
+        ...
+
 
 def episode_metrics(batch: TensorDictBase) -> Metrics:
     """Returns and lengths of the episodes that ended inside a collected batch."""

@@ -17,9 +17,10 @@ from torchrl.envs import (
 )
 
 from rlpipe.config import EnvConfig
+from rlpipe.envs import cartpole  # noqa: F401  (registers rlpipe/CartPole*-v0 with gymnasium)
 from rlpipe.errors import RlpipeError
 
-__all__ = ["make_env", "observation_size", "is_discrete", "num_actions"]
+__all__ = ["make_env", "observation_size", "is_discrete", "num_actions", "sub_envs", "env_config"]
 
 
 def make_env(
@@ -86,3 +87,20 @@ def is_discrete(env: EnvBase) -> bool:
 def num_actions(env: EnvBase) -> int:
     """Number of discrete actions (only for discrete action spaces)."""
     return int(env.action_spec_unbatched.space.n)
+
+
+def sub_envs(env: EnvBase) -> list[gym.Env]:
+    """The gymnasium copies inside a :func:`make_env` env, for loops that step them directly."""
+    base = env.base_env if isinstance(env, TransformedEnv) else env
+    venv = base.__dict__.get("_env")
+    if not isinstance(venv, gym.vector.SyncVectorEnv):
+        raise RlpipeError(
+            f"expected an env built on a gymnasium SyncVectorEnv (rlpipe.make_env), got {env!r}"
+        )
+    return list(venv.envs)
+
+
+def env_config(env: EnvBase) -> EnvConfig:
+    """An :class:`EnvConfig` that builds more copies of the gymnasium env inside ``env``."""
+    spec = sub_envs(env)[0].spec
+    return EnvConfig(id=spec.id, max_episode_steps=spec.max_episode_steps, kwargs=dict(spec.kwargs))

@@ -1,0 +1,167 @@
+"""Augmented random search (ARS V2) as an rlpipe algorithm: a linear or MLP policy behind a
+running observation normaliser, evolved by :class:`rlpipe.evolution.ARSSearch`."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from functools import partial
+from typing import Any
+
+import torch
+from tensordict.nn import TensorDictModule, TensorDictSequential
+from torch import nn
+from torchrl.data import Bounded, Categorical
+from torchrl.envs import EnvBase
+
+from rlpipe.algos.base import Metrics
+from rlpipe.envs import env_config, is_discrete, make_env, num_actions, observation_size
+from rlpipe.errors import RlpipeError, check
+from rlpipe.evolution import ARSSearch, Normalizer
+from rlpipe.models import mlp
+
+POLICIES = ("linear", "mlp")
+
+
+@dataclass
+class ARSConfig:
+    """ARS hyper-parameters; the defaults are the workshop notebook's."""
+
+    name: str = "ars"
+    num_directions: int = 16  # N: directions sampled per iteration (2N rollouts)
+    num_best: int = 16  # b: directions kept for the update, by max(r+, r-)
+    step_size: float = 0.02  # α
+    noise: float = 0.03  # ν: perturbations are θ ± ν·δ
+    episode_length: int = 2000  # cap on training rollouts (the env's own limit still applies)
+    reward_clip: bool = True  # clip training rewards to [-1, 1], as the notebook
+    alive_bonus_offset: float = 0.0  # added to every training reward (RL Zoo: -0.1 for Bipedal)
+    normalize_observations: bool = True  # ARS V2: running mean/variance, frozen for evaluation
+    policy: str = "linear"  # linear | mlp
+    hidden_sizes: list[int] = field(default_factory=lambda: [32, 32])  # policy=mlp only
+    workers: int = 0  # rollout processes; 0: one per CPU core, 1: this process only
+
+    def __post_init__(self) -> None:
+        check(
+            self.num_directions >= 1,
+            f"algo.num_directions must be >= 1, got {self.num_directions}",
+        )
+        check(
+            1 <= self.num_best <= self.num_directions,
+            f"algo.num_best ({self.num_best}) must be between 1 and algo.num_directions "
+            f"({self.num_directions})",
+        )
+        check(self.step_size > 0, f"algo.step_size must be > 0, got {self.step_size}")
+        check(self.noise > 0, f"algo.noise must be > 0, got {self.noise}")
+        check(
+            self.episode_length >= 1,
+            f"algo.episode_length must be >= 1, got {self.episode_length}",
+        )
+        check(
+            self.policy in POLICIES,
+            f"algo.policy must be one of {', '.join(POLICIES)}; got {self.policy!r}",
+        )
+        check(
+            all(h >= 1 for h in self.hidden_sizes),
+            f"algo.hidden_sizes must be positive, got {self.hidden_sizes}",
+        )
+        check(self.workers >= 0, f"algo.workers must be >= 0, got {self.workers}")
+
+
+class ClampAction(nn.Module):
+    """Clip continuous actions to the action space's bounds."""
+
+    def __init__(self, low: torch.Tensor, high: torch.Tensor) -> None:
+        super().__init__()
+        self.register_buffer("low", low.clone())
+        self.register_buffer("high", high.clone())
+
+    def forward(self, output: torch.Tensor) -> torch.Tensor:
+        return torch.clamp(output, self.low, self.high)
+
+
+class ArgmaxAction(nn.Module):
+    """Pick the discrete action with the largest output."""
+
+    def forward(self, output: torch.Tensor) -> torch.Tensor:
+        return output.argmax(-1)
+
+
+def make_ars_policy(env: EnvBase, cfg: ARSConfig) -> tuple[TensorDictSequential, Normalizer]:
+    """Normaliser -> linear map (zero-initialised, as the notebook) or MLP -> action head."""
+    size = observation_size(env)
+    spec = env.action_spec_unbatched
+    if is_discrete(env) and isinstance(spec, Categorical):
+        outputs, head = num_actions(env), ArgmaxAction()
+    elif isinstance(spec, Bounded) and len(spec.shape) == 1:
+        outputs, head = spec.shape[0], ClampAction(spec.space.low, spec.space.high)
+    else:
+        raise RlpipeError(
+            f"ARS needs a discrete (Discrete) or a flat bounded continuous (Box) action space; "
+            f"this env's actions are {type(spec).__name__} of shape {tuple(spec.shape)}"
+        )
+    if cfg.policy == "linear":
+        net = nn.Linear(size, outputs, bias=False)
+        nn.init.zeros_(net.weight)
+    else:
+        net = mlp(size, outputs, cfg.hidden_sizes)
+    normalizer = Normalizer(size)  # the identity until statistics are merged in
+    policy = TensorDictSequential(
+        TensorDictModule(normalizer, in_keys=["observation"], out_keys=["observation_norm"]),
+        TensorDictModule(net, in_keys=["observation_norm"], out_keys=["policy_output"]),
+        TensorDictModule(head, in_keys=["policy_output"], out_keys=["action"]),
+    )
+    return policy, normalizer
+
+
+class ARS:
+    """Augmented random search on a batched TorchRL env built by :func:`rlpipe.make_env`.
+
+    The env given is used for its specs and closed; the ``2N`` perturbed policies roll out on
+    copies of its gymnasium env spread over ``cfg.workers`` processes. One :meth:`train_step`
+    is one ARS iteration; ``frames`` counts every step of every perturbed rollout. ARS runs on
+    the CPU whatever ``device`` says: its per-step work is one small batched matmul.
+    """
+
+    def __init__(self, env: EnvBase, cfg: ARSConfig, *, device: str | torch.device = "cpu"):
+        self.cfg = cfg
+        self.frames = 0
+        self.policy, normalizer = make_ars_policy(env, cfg)
+        seed = int(torch.randint(0, 2**31 - 1, ()))  # from the run's seeded torch generator
+        self.search = ARSSearch(
+            self.policy,
+            partial(make_env, env_config(env)),
+            num_directions=cfg.num_directions,
+            num_best=cfg.num_best,
+            step_size=cfg.step_size,
+            noise=cfg.noise,
+            max_steps=cfg.episode_length,
+            reward_offset=cfg.alive_bonus_offset,
+            reward_clip=1.0 if cfg.reward_clip else None,
+            normalizer=normalizer if cfg.normalize_observations else None,
+            workers=cfg.workers or os.cpu_count() or 1,
+            seed=seed,
+        )
+        env.close()
+
+    def train_step(self) -> Metrics:
+        stats = self.search.step()
+        self.frames += int(stats["env_steps"])  # every step of every perturbed rollout
+        return {f"train/{key}": value for key, value in stats.items()}
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "policy": self.policy.state_dict(),
+            "frames": self.frames,
+            "iterations": self.search.iterations,
+            "generator": self.search.generator.get_state(),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.policy.load_state_dict(state["policy"])
+        self.frames = int(state["frames"])
+        self.search.iterations = int(state["iterations"])
+        self.search.generator.set_state(state["generator"])
+
+    def close(self) -> None:
+        """Stop the rollout workers."""
+        self.search.close()

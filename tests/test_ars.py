@@ -1,0 +1,216 @@
+"""ARS: the update rule, the normaliser, population calls, the search, the algorithm, the CLI."""
+
+from __future__ import annotations
+
+import io
+from functools import partial
+
+import numpy as np
+import pytest
+import torch
+from conftest import TINY
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
+from torch import nn
+from torch.nn.utils import parameters_to_vector, vector_to_parameters
+
+from rlpipe.algos import ARS, Algorithm, ARSConfig
+from rlpipe.algos.ars import make_ars_policy
+from rlpipe.config import EnvConfig
+from rlpipe.envs import make_env
+from rlpipe.errors import RlpipeError
+from rlpipe.evaluation import evaluate
+from rlpipe.evolution import ARSSearch, Normalizer, PopulationPolicy, ars_update
+
+CARTPOLE = EnvConfig(id="CartPole-v1")
+
+
+def test_update_rule_by_hand():
+    theta = torch.zeros(2)
+    deltas = torch.tensor([[1.0, 0.0], [0.0, 1.0], [1.0, 1.0]])
+    plus, minus = torch.tensor([3.0, 0.0, 1.0]), torch.tensor([1.0, 2.0, 1.0])
+    # top-2 by max(r+, r-): directions 0 (3) and 1 (2); σ = std(3, 0, 1, 2) = sqrt(1.25)
+    step = 2.0 * deltas[0] - 2.0 * deltas[1]
+    expected = 0.1 / (2 * 1.25**0.5) * step
+    assert torch.allclose(ars_update(theta, deltas, plus, minus, 2, 0.1), expected)
+
+
+def test_update_rule_climbs_a_quadratic_to_its_optimum():
+    """Maximise f(θ) = -||θ - θ*||² with the ARS rule alone."""
+    generator = torch.Generator().manual_seed(0)
+    optimum = torch.randn(10, generator=generator)
+    theta = torch.zeros(10)
+
+    def f(x: torch.Tensor) -> torch.Tensor:
+        return -((x - optimum) ** 2).sum(-1)
+
+    start = f(theta)
+    for _ in range(300):
+        deltas = torch.randn(8, 10, generator=generator)
+        theta = ars_update(
+            theta, deltas, f(theta + 0.05 * deltas), f(theta - 0.05 * deltas), 4, 0.1
+        )
+    assert f(theta) > 0.01 * start  # from -||θ*||² to within 1% of it
+    assert torch.allclose(theta, optimum, atol=0.15)
+
+
+def test_normalizer_matches_the_notebooks_sequential_welford():
+    data = torch.randn(300, 3, dtype=torch.float64) * torch.tensor([5.0, 0.01, 1.0]) + 2.0
+    n, mean, mean_diff = 0.0, np.zeros(3), np.zeros(3)
+    for x in data.numpy():  # the notebook's Normalizer.observe
+        n += 1.0
+        last_mean = mean.copy()
+        mean += (x - mean) / n
+        mean_diff += (x - last_mean) * (x - mean)
+    var = (mean_diff / n).clip(min=1e-2)
+    norm = Normalizer(3)
+    obs = torch.randn(4, 3)
+    assert torch.equal(norm(obs), obs)  # the identity before any statistics
+    for chunk in data.split([1, 120, 7, 172]):
+        norm.observe(chunk)
+    assert torch.allclose(norm.mean, torch.from_numpy(mean))
+    assert torch.allclose(norm.scale.double(), torch.from_numpy(np.sqrt(var)), rtol=1e-5)
+    expected = (obs.double() - torch.from_numpy(mean)) / torch.from_numpy(np.sqrt(var))
+    assert torch.allclose(norm(obs).double(), expected, atol=1e-5)
+
+
+@pytest.mark.parametrize("env_id", ["CartPole-v1", "Pendulum-v1"])
+@pytest.mark.parametrize("policy", ["linear", "mlp"])
+def test_population_call_equals_one_call_per_member(env_id, policy):
+    env = make_env(EnvConfig(id=env_id))
+    net, normalizer = make_ars_policy(env, ARSConfig(policy=policy, hidden_sizes=[8]))
+    size = env.observation_spec["observation"].shape[-1]
+    normalizer.observe(torch.randn(50, size) * 3)
+    n = parameters_to_vector(net.parameters()).numel()
+    flat = torch.randn(6, n)
+    obs = torch.randn(6, size)
+    out = PopulationPolicy(net, flat)(TensorDict(observation=obs, batch_size=[6]))
+    for i in range(6):
+        vector_to_parameters(flat[i], net.parameters())
+        one = net(TensorDict(observation=obs[i : i + 1], batch_size=[1]))
+        assert torch.allclose(one["policy_output"][0], out["policy_output"][i], atol=1e-5)
+        assert torch.equal(one["action"][0], out["action"][i])
+    if env_id == "Pendulum-v1":
+        assert out["action"].abs().max() <= 2.0  # clipped to the bounds
+
+
+def test_population_call_of_other_layers_goes_through_vmap():
+    net = nn.Sequential(nn.Linear(3, 8), nn.LayerNorm(8), nn.Tanh(), nn.Linear(8, 1))
+    policy = TensorDictModule(net, in_keys=["observation"], out_keys=["action"])
+    flat = torch.randn(5, parameters_to_vector(net.parameters()).numel())
+    obs = torch.randn(5, 3)
+    out = PopulationPolicy(policy, flat)(TensorDict(observation=obs, batch_size=[5]))
+    for i in range(5):
+        vector_to_parameters(flat[i], net.parameters())
+        assert torch.allclose(net(obs[i]), out["action"][i], atol=1e-5)
+
+
+def test_search_standalone_solves_cartpole_and_tracks_observations():
+    torch.manual_seed(0)
+    policy, normalizer = make_ars_policy(make_env(CARTPOLE), ARSConfig())
+    search = ARSSearch(
+        policy,
+        partial(make_env, CARTPOLE),
+        num_directions=8,
+        num_best=4,
+        step_size=0.02,
+        noise=0.03,
+        max_steps=500,
+        normalizer=normalizer,
+        seed=0,
+    )
+    steps = 0
+    for _ in range(25):
+        stats = search.step()
+        steps += int(stats["env_steps"])
+        if stats["return_mean"] == 500:
+            break
+    search.close()
+    assert stats["return_max"] == 500
+    assert normalizer.count == steps  # every state a perturbed policy acted on
+    assert evaluate(policy, make_env(CARTPOLE, num_envs=2), 2).mean > 400
+
+
+def test_worker_processes_give_the_same_search_as_one_process():
+    """Each member's episode seed comes from the search, whichever process rolls it out."""
+    thetas, counts = [], []
+    for workers in (1, 2):
+        policy, normalizer = make_ars_policy(make_env(CARTPOLE), ARSConfig())
+        search = ARSSearch(
+            policy,
+            partial(make_env, CARTPOLE),
+            num_directions=3,
+            normalizer=normalizer,
+            workers=workers,
+            seed=5,
+        )
+        try:
+            before = search.theta
+            stats = search.step()
+        finally:
+            search.close()
+        assert not torch.equal(before, search.theta)
+        assert normalizer.count == stats["env_steps"] > 6
+        thetas.append(search.theta)
+        counts.append(stats["env_steps"])
+    assert torch.allclose(thetas[0], thetas[1]) and counts[0] == counts[1]
+
+
+def test_algorithm_checkpoint_holds_normaliser_and_parameters():
+    torch.manual_seed(0)
+    algo = ARS(make_env(CARTPOLE), ARSConfig(num_directions=4, num_best=2, workers=1))
+    assert isinstance(algo, Algorithm)
+    metrics = algo.train_step()
+    assert algo.frames == metrics["train/env_steps"] > 0
+    assert set(metrics) >= {"train/return_mean", "train/return_max", "train/steps_per_second"}
+    buffer = io.BytesIO()
+    torch.save(algo.state_dict(), buffer)
+    buffer.seek(0)
+    state = torch.load(buffer, weights_only=True)
+    other = ARS(make_env(CARTPOLE), ARSConfig(num_directions=4, num_best=2, workers=1))
+    td = make_env(CARTPOLE, num_envs=3).reset()
+    other.load_state_dict(state)
+    assert torch.equal(
+        other.policy(td.clone())["policy_output"], algo.policy(td.clone())["policy_output"]
+    )
+    assert other.policy[0].module.count == algo.frames
+    assert other.frames == algo.frames and other.search.iterations == 1
+    algo.close()
+    other.close()
+
+
+def test_config_checks():
+    with pytest.raises(RlpipeError, match="num_best"):
+        ARSConfig(num_directions=4, num_best=5)
+    with pytest.raises(RlpipeError, match="noise"):
+        ARSConfig(noise=0)
+    with pytest.raises(RlpipeError, match="step_size"):
+        ARSConfig(step_size=-0.1)
+
+
+def test_non_flat_observation_is_rejected(image_env_id):
+    with pytest.raises(RlpipeError, match="flat vector observation"):
+        ARS(make_env(EnvConfig(id=image_env_id)), ARSConfig(workers=1))
+
+
+def test_cli_trains_ars(rlpipe_cli):
+    proc = rlpipe_cli(
+        *TINY, "algo=ars", "algo.num_directions=2", "algo.num_best=2", "algo.workers=1"
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert "final eval" in proc.stdout
+
+
+BAD = [
+    (["algo.num_best=17"], "algo.num_best (17) must be between 1 and algo.num_directions (16)"),
+    (["algo.noise=0"], "algo.noise must be > 0"),
+    (["algo.step_size=-1"], "algo.step_size must be > 0"),
+]
+
+
+@pytest.mark.parametrize("args, message", BAD, ids=[a[0] for a, _ in BAD])
+def test_cli_bad_input_is_one_line(rlpipe_cli, args, message):
+    proc = rlpipe_cli("progress=false", "algo=ars", "env=bipedal", *args)
+    assert proc.returncode == 2
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith(f"rlpipe: error: {message}"), proc.stderr
