@@ -10,14 +10,11 @@ import tempfile
 from pathlib import Path
 
 from ars_bipedal import curve_report, learning_curve
-from common import parser, publish
+from common import budget_parser, publish
 
 
 def main() -> None:
-    p = parser(__doc__.splitlines()[0])
-    p.add_argument("--frames", type=int, default=200_000)
-    p.add_argument("--eval-every", type=int, default=10_000)
-    p.add_argument("--eval-episodes", type=int, default=20)
+    p = budget_parser(__doc__.splitlines()[0], frames=200_000, eval_every=10_000)
     args = p.parse_args()
     for seed in args.seeds:
         overrides = [

@@ -25,6 +25,15 @@ def parser(description: str) -> argparse.ArgumentParser:
     return p
 
 
+def budget_parser(description: str, frames: int, eval_every: int) -> argparse.ArgumentParser:
+    """:func:`parser` plus a frame budget and the greedy-evaluation cadence."""
+    p = parser(description)
+    p.add_argument("--frames", type=int, default=frames)
+    p.add_argument("--eval-every", type=int, default=eval_every)
+    p.add_argument("--eval-episodes", type=int, default=20)
+    return p
+
+
 def machine(packages: Sequence[str]) -> str:
     """One line naming the machine and the versions that matter."""
     versions = []

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
-from common import compose_config, machine, parser, publish, read_scalar, table
+from common import budget_parser, compose_config, machine, publish, read_scalar, table
 
 from rlpipe.train import train
 
@@ -103,10 +103,7 @@ def fmt_hit(hit: tuple[int, float] | None) -> tuple[str, str]:
 
 
 def main() -> None:
-    p = parser(__doc__.splitlines()[0])
-    p.add_argument("--frames", type=int, default=50_000)
-    p.add_argument("--eval-every", type=int, default=2_000)
-    p.add_argument("--eval-episodes", type=int, default=20)
+    p = budget_parser(__doc__.splitlines()[0], frames=50_000, eval_every=2_000)
     args = p.parse_args()
     rows, ratios, hits = [], [], 0
     for seed in args.seeds:
