@@ -6,6 +6,7 @@ import argparse
 import csv
 import os
 import platform
+import time
 from collections.abc import Sequence
 from datetime import date
 from importlib.metadata import PackageNotFoundError, version
@@ -13,8 +14,12 @@ from pathlib import Path
 
 from hydra import compose, initialize_config_module
 
+from rlpipe.algos import make_algorithm
 from rlpipe.cli import register_configs, to_config
 from rlpipe.config import Config
+from rlpipe.envs import make_env
+from rlpipe.evaluation import evaluate
+from rlpipe.train import seed_everything
 
 
 def parser(description: str) -> argparse.ArgumentParser:
@@ -61,6 +66,63 @@ def compose_config(*overrides: str) -> Config:
     register_configs()
     with initialize_config_module(config_module="rlpipe.conf", version_base="1.3"):
         return to_config(compose("config", overrides=list(overrides)))
+
+
+def train_with_evals(
+    overrides: list[str],
+    seed: int,
+    episodes: int,
+    max_steps: int,
+    target: float | None = None,
+    *,
+    eval_every: int = 0,
+    max_frames: int | None = None,
+) -> list[dict]:
+    """Train step by step with a greedy eval after each (or, with ``eval_every``, after the first
+    step at or past each multiple of that many frames); one row per eval (stops at ``target``,
+    or after the eval at ``max_frames``). Training seconds exclude evaluation."""
+    cfg = compose_config(*overrides, f"seed={seed}")
+    seed_everything(seed)
+    env = make_env(cfg.env, seed=seed)
+    eval_env = make_env(cfg.env, num_envs=min(episodes, 32), seed=seed + 10_000)
+    algo = make_algorithm(env, cfg.algo)
+    rows, seconds, episode_frames, next_eval = [], 0.0, 0, eval_every
+    try:
+        for step in range(max_steps):
+            start = time.perf_counter()
+            metrics = algo.train_step()
+            seconds += time.perf_counter() - start
+            episode_frames += int(sum(metrics.get("train/episode_length", [])))
+            capped = max_frames is not None and algo.frames >= max_frames
+            if eval_every and algo.frames < next_eval and not capped:
+                continue
+            next_eval = (algo.frames // max(eval_every, 1) + 1) * eval_every
+            mean = evaluate(algo.policy, eval_env, episodes).mean
+            rows.append(
+                {
+                    "epoch": step + 1,
+                    "eval": mean,
+                    "frames": algo.frames,
+                    "episode_frames": episode_frames,
+                    "seconds": seconds,
+                }
+            )
+            if capped or (target is not None and mean >= target):
+                break
+    finally:
+        algo.close()
+        eval_env.close()
+    return rows
+
+
+def first_hit(rows: list[dict], target: float) -> dict | None:
+    return next((r for r in rows if r["eval"] >= target - 1e-6), None)
+
+
+def hit_cells(hit: dict | None, unit: str) -> list[str]:
+    if hit is None:
+        return ["not reached", "–"]
+    return [f"{hit[unit]:,}", f"{hit['seconds']:.1f}"]
 
 
 def read_scalar(run_dir: Path, name: str) -> list[tuple[int, float]]:

@@ -7,6 +7,13 @@ continuous CartPole (the notebook's physics; actions clipped to [-1, 1], reward 
 step as in the notebook), gymnasium's ``reset``/``step`` API, states stacked through
 ``np.array`` (the notebook's ``as_tensor`` of a list of arrays is the same, only slower), and
 per-epoch eval results returned instead of printed.
+
+The loss is the notebook's, shape for shape. A suspected broadcasting quirk (``log_prob`` of
+``[B, 1]`` actions under a ``[B]`` distribution would give a ``[B, B]`` matrix) does not happen:
+the notebook's ``torch.as_tensor(list of one-element tensors)`` turns each action into a
+scalar, so its actions are ``[N]`` and ``log_prob`` is ``[B]``, the per-sample REINFORCE
+objective (checked with torch 2.13: the notebook's line and this port's ``torch.cat`` give
+equal ``[N]`` tensors). rlpipe's ``baseline=none`` objective is the same.
 """
 
 from __future__ import annotations

@@ -4,13 +4,15 @@ REINFORCE on CartPole-v1 and ARS on the continuous CartPole.
 Everything runs in this process, one run after the other, with ``torch.set_num_threads(1)``
 (the networks are tiny; on a shared 2-core machine more threads only contend).
 
-1. Continuous CartPole, 50-step horizon, the notebook's hyper-parameters: rlpipe's
-   ``algo=reinforce env=cartpole_continuous`` and ``reference_reinforce.py`` (a faithful port of
-   the notebook's loop), each for ``--epochs`` epochs; after every epoch ``--eval-episodes``
-   greedy episodes. Reported per seed: the first epoch whose eval mean is 50 (the horizon) and
-   the training seconds to it, the training seconds of all epochs, the wall ratio, and the
-   training seconds per frame of the training episodes (rlpipe's idle copies, stepped until
-   the batch's longest episode ends, cost time but add no episode frames).
+1. Continuous CartPole, 50-step horizon: ``reference_reinforce.py`` (a faithful port of the
+   notebook's loop) and two rlpipe settings, ``algo=reinforce env=cartpole_continuous`` (the
+   notebook's hyper-parameters) and ``+experiment=reinforce_cartpole`` (the tuned preset: a
+   learned value baseline), each for ``--epochs`` epochs; after every epoch ``--eval-episodes``
+   greedy episodes. Reported per setting and seed, each against the reference run of that
+   seed: the first epoch whose eval mean is 50 (the horizon) and the training seconds to it,
+   the training seconds of all epochs, the wall ratio, and the training seconds per frame of
+   the training episodes (rlpipe's idle copies, stepped until the batch's longest episode
+   ends, cost time but add no episode frames).
 2. ``algo=reinforce env=cartpole`` (CartPole-v1) with ``--discrete`` overrides: frames and
    training seconds until the greedy eval mean first reaches 475 (eval after every epoch).
 3. ``algo=ars env=cartpole_continuous`` (when the ARS algorithm is registered): frames and
@@ -24,19 +26,28 @@ Evaluation time is excluded from every clock.
 from __future__ import annotations
 
 import argparse
-import time
 
 import numpy as np
 import torch
-from common import compose_config, machine, parser, publish, table
+from common import (
+    compose_config,
+    first_hit,
+    hit_cells,
+    machine,
+    parser,
+    publish,
+    table,
+    train_with_evals,
+)
 from reference_reinforce import run as run_reference
 
-from rlpipe.algos import ALGORITHMS, make_algorithm
-from rlpipe.envs import make_env
-from rlpipe.evaluation import evaluate
-from rlpipe.train import seed_everything
+from rlpipe.algos import ALGORITHMS
 
 HORIZON = 50.0
+CONTINUOUS = {
+    "notebook defaults": ["algo=reinforce", "env=cartpole_continuous"],
+    "preset": ["+experiment=reinforce_cartpole"],
+}
 DISCRETE_TARGET = 475.0
 DISCRETE = [
     "env.num_envs=16",
@@ -44,50 +55,6 @@ DISCRETE = [
     "algo.episodes_per_epoch=32",
     "algo.lr=3e-3",
 ]
-
-
-def train_with_evals(
-    overrides: list[str], seed: int, episodes: int, max_steps: int, target: float | None = None
-) -> list[dict]:
-    """Train step by step with a greedy eval after each; one row per step (stops at ``target``)."""
-    cfg = compose_config(*overrides, f"seed={seed}")
-    seed_everything(seed)
-    env = make_env(cfg.env, seed=seed)
-    eval_env = make_env(cfg.env, num_envs=min(episodes, 32), seed=seed + 10_000)
-    algo = make_algorithm(env, cfg.algo)
-    rows, seconds, episode_frames = [], 0.0, 0
-    try:
-        for step in range(max_steps):
-            start = time.perf_counter()
-            metrics = algo.train_step()
-            seconds += time.perf_counter() - start
-            episode_frames += int(sum(metrics.get("train/episode_length", [])))
-            mean = evaluate(algo.policy, eval_env, episodes).mean
-            rows.append(
-                {
-                    "epoch": step + 1,
-                    "eval": mean,
-                    "frames": algo.frames,
-                    "episode_frames": episode_frames,
-                    "seconds": seconds,
-                }
-            )
-            if target is not None and mean >= target:
-                break
-    finally:
-        algo.close()
-        eval_env.close()
-    return rows
-
-
-def first_hit(rows: list[dict], target: float) -> dict | None:
-    return next((r for r in rows if r["eval"] >= target - 1e-6), None)
-
-
-def hit_cells(hit: dict | None, unit: str) -> list[str]:
-    if hit is None:
-        return ["not reached", "–"]
-    return [f"{hit[unit]:,}", f"{hit['seconds']:.1f}"]
 
 
 def rows_to_target(
@@ -104,6 +71,37 @@ def rows_to_target(
     return rows
 
 
+def continuous_row(setting: str, seed: int, ours: list[dict], ref: list[dict]) -> list[object]:
+    """One table row: an rlpipe run against the reference run of the same seed."""
+    # the reference's frames are its episodes' frames: it never steps past an episode's end
+    cost = [
+        ours[-1]["seconds"] / ours[-1]["episode_frames"],
+        ref[-1]["seconds"] / ref[-1]["frames"],
+    ]
+    return [
+        setting,
+        seed,
+        *hit_cells(first_hit(ours, HORIZON), "epoch"),
+        f"{ours[-1]['eval']:.1f}",
+        f"{ours[-1]['seconds']:.1f}",
+        *hit_cells(first_hit(ref, HORIZON), "epoch"),
+        f"{ref[-1]['eval']:.1f}",
+        f"{ref[-1]['seconds']:.1f}",
+        f"{ours[-1]['seconds'] / ref[-1]['seconds']:.2f}",
+        f"{cost[0] * 1e6:.0f} / {cost[1] * 1e6:.0f} = {cost[0] / cost[1]:.2f}",
+    ]
+
+
+def summary(setting: str, runs: list[list[dict]], refs: list[list[dict]]) -> str:
+    """How many seeds reached the horizon, and the mean wall ratio, of one rlpipe setting."""
+    reached = sum(first_hit(ours, HORIZON) is not None for ours in runs)
+    ratio = np.mean([ours[-1]["seconds"] / ref[-1]["seconds"] for ours, ref in zip(runs, refs)])
+    return (
+        f"- {setting}: reached 50 within the epochs on {reached}/{len(runs)} seeds; mean wall "
+        f"ratio rlpipe/notebook {ratio:.2f}."
+    )
+
+
 def main() -> None:
     p = parser(__doc__.splitlines()[0])
     p.add_argument("--epochs", type=int, default=20)
@@ -112,32 +110,20 @@ def main() -> None:
     p.add_argument("--ars-iterations", type=int, default=300, help="cap for ARS")
     args = p.parse_args()
     torch.set_num_threads(1)
-    continuous = ["algo=reinforce", "env=cartpole_continuous"]
-    rows, ratios, cost_ratios = [], [], []
-    for seed in args.seeds:
-        ours = train_with_evals(continuous, seed, args.eval_episodes, args.epochs)
-        ref = run_reference(seed, epochs=args.epochs, test_episodes=args.eval_episodes)
-        ratios.append(ours[-1]["seconds"] / ref[-1]["seconds"])
-        # the reference's frames are its episodes' frames: it never steps past an episode's end
-        cost = [
-            ours[-1]["seconds"] / ours[-1]["episode_frames"],
-            ref[-1]["seconds"] / ref[-1]["frames"],
+    refs = [
+        run_reference(seed, epochs=args.epochs, test_episodes=args.eval_episodes)
+        for seed in args.seeds
+    ]
+    rows, summaries = [], []
+    for setting, overrides in CONTINUOUS.items():
+        runs = [
+            train_with_evals(overrides, seed, args.eval_episodes, args.epochs)
+            for seed in args.seeds
         ]
-        cost_ratios.append(cost[0] / cost[1])
-        rows.append(
-            [
-                seed,
-                *hit_cells(first_hit(ours, HORIZON), "epoch"),
-                f"{ours[-1]['eval']:.1f}",
-                f"{ours[-1]['seconds']:.1f}",
-                *hit_cells(first_hit(ref, HORIZON), "epoch"),
-                f"{ref[-1]['eval']:.1f}",
-                f"{ref[-1]['seconds']:.1f}",
-                f"{ratios[-1]:.2f}",
-                f"{cost[0] * 1e6:.0f} / {cost[1] * 1e6:.0f} = {cost_ratios[-1]:.2f}",
-            ]
-        )
-        print(rows[-1], flush=True)
+        for seed, ours, ref in zip(args.seeds, runs, refs):
+            rows.append(continuous_row(setting, seed, ours, ref))
+            print(rows[-1], flush=True)
+        summaries.append(summary(setting, runs, refs))
     discrete_rows = rows_to_target(
         ["algo=reinforce", "env=cartpole", *DISCRETE], args, args.discrete_epochs, DISCRETE_TARGET
     )
@@ -146,21 +132,25 @@ def main() -> None:
         ars_rows = rows_to_target(
             ["algo=ars", "env=cartpole_continuous"], args, args.ars_iterations, HORIZON
         )
-    cfg = compose_config(*continuous)
+    cfg = compose_config(*CONTINUOUS["notebook defaults"])
+    preset = compose_config(*CONTINUOUS["preset"]).algo
     report = [
         "### REINFORCE on the notebook's continuous CartPole: rlpipe vs the notebook's loop",
         "",
         machine(["torch", "torchrl", "tensordict", "gymnasium"]),
         "",
-        f"`python -m rlpipe algo=reinforce env=cartpole_continuous` settings (num_envs="
-        f"{cfg.env.num_envs}, horizon {cfg.env.max_episode_steps}) and "
-        "`benchmarks/reference_reinforce.py`, same seeds, "
-        f"{args.epochs} epochs of {cfg.algo.episodes_per_epoch} episodes, "
-        f"{args.eval_episodes} greedy eval episodes after each epoch (eval time excluded). "
-        "One torch thread.",
+        f"`benchmarks/reference_reinforce.py` and `python -m rlpipe algo=reinforce "
+        f"env=cartpole_continuous` (notebook defaults; num_envs={cfg.env.num_envs}, horizon "
+        f"{cfg.env.max_episode_steps}) or `+experiment=reinforce_cartpole` (preset: "
+        f"baseline={preset.baseline}, lr={preset.lr}, value_lr={preset.value_lr}, "
+        f"value_hidden_sizes={preset.value_hidden_sizes}), same seeds, {args.epochs} epochs of "
+        f"{cfg.algo.episodes_per_epoch} episodes, {args.eval_episodes} greedy eval episodes "
+        "after each epoch (eval time excluded); each rlpipe row against the reference run of "
+        "its seed. One torch thread.",
         "",
         table(
             [
+                "rlpipe setting",
                 "seed",
                 "rlpipe epoch to 50",
                 "rlpipe s to 50",
@@ -176,9 +166,10 @@ def main() -> None:
             rows,
         ),
         "",
-        f"Mean wall ratio over {args.epochs} epochs: {np.mean(ratios):.2f}; mean cost ratio per "
-        f"episode frame: {np.mean(cost_ratios):.2f} (training seconds / frames of the training "
-        "episodes; the wall time of a fixed number of epochs grows with the episodes' length).",
+        *summaries,
+        "",
+        "The wall time of a fixed number of epochs grows with the episodes' length; rlpipe "
+        "steps all copies until the epoch's longest episode ends.",
         "",
         f"REINFORCE on CartPole-v1 (`algo=reinforce env=cartpole {' '.join(DISCRETE)}`), greedy "
         f"eval after every epoch, at most {args.discrete_epochs} epochs:",

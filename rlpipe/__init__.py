@@ -4,9 +4,11 @@ from rlpipe.algos import (
     ALGORITHMS,
     ARS,
     DQN,
+    MBRL,
     Algorithm,
     ARSConfig,
     DQNConfig,
+    MBRLConfig,
     Reinforce,
     ReinforceConfig,
     make_algorithm,
@@ -16,6 +18,7 @@ from rlpipe.envs import make_env
 from rlpipe.errors import RlpipeError
 from rlpipe.evaluation import EvalResult, evaluate
 from rlpipe.evolution import ARSSearch, Normalizer
+from rlpipe.rundir import LoadedRun, load_run
 from rlpipe.runner import Runner, RunResult
 from rlpipe.train import make_logger, seed_everything, train
 
@@ -32,7 +35,10 @@ __all__ = [
     "DQNConfig",
     "EnvConfig",
     "EvalResult",
+    "LoadedRun",
     "LoggerConfig",
+    "MBRL",
+    "MBRLConfig",
     "Normalizer",
     "Reinforce",
     "ReinforceConfig",
@@ -40,6 +46,7 @@ __all__ = [
     "RunResult",
     "Runner",
     "evaluate",
+    "load_run",
     "make_algorithm",
     "make_env",
     "make_logger",

@@ -16,8 +16,16 @@ from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
 from rlpipe.algos import ALGORITHMS
 from rlpipe.config import Config, EnvConfig
 from rlpipe.errors import RlpipeError
+from rlpipe.runner import Interrupted
 
 USER_ERRORS = (RlpipeError, HydraException, OmegaConfBaseException)
+# Hydra launcher/sweeper plugins and the rlpipe extra that installs each
+PLUGIN_EXTRAS = {
+    "joblib": "joblib",
+    "submitit_local": "submitit",
+    "submitit_slurm": "submitit",
+    "optuna": "optuna",
+}
 
 
 def register_configs() -> None:
@@ -54,10 +62,15 @@ def format_error(err: BaseException) -> str:
     """Squeeze a user error into one line naming the problem (and the valid choices)."""
     if isinstance(err, MissingConfigException) and err.options and err.missing_cfg_file:
         group, _, name = err.missing_cfg_file.rpartition("/")
-        return f"unknown {group} option {name!r}; choose one of: {', '.join(err.options)}"
+        message = f"unknown {group} option {name!r}; choose one of: {', '.join(err.options)}"
+        if group.startswith("hydra/") and name in PLUGIN_EXTRAS:
+            message += f'; install it with: pip install "rlpipe[{PLUGIN_EXTRAS[name]}]"'
+        return message
     if isinstance(err, MissingMandatoryValue):
         return f"{err.full_key} must be set, e.g. python -m rlpipe {err.full_key}=<value>"
-    first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+    lines = [line.strip() for line in str(err).splitlines() if line.strip()] or [type(err).__name__]
+    # Hydra's "... raised while composing config:" says what failed on the next line
+    first = " ".join(lines[:2]) if lines[0].endswith(":") else lines[0]
     cause = err.__cause__
     if isinstance(cause, RlpipeError):
         return str(cause)
@@ -67,7 +80,11 @@ def format_error(err: BaseException) -> str:
 
 
 def fail(err: BaseException) -> NoReturn:
-    """Print ``rlpipe: error: <one line>`` to stderr and exit with code 2."""
+    """Print ``rlpipe: error: <one line>`` to stderr and exit with code 2; an interrupted run
+    prints how to resume and exits with 128 + the signal number."""
+    if isinstance(err, Interrupted):
+        print(f"rlpipe: {err}", file=sys.stderr)
+        sys.exit(err.exit_code)
     print(f"rlpipe: error: {format_error(err)}", file=sys.stderr)
     sys.exit(2)
 
@@ -79,3 +96,11 @@ def run_cli(hydra_main: Callable[[], Any]) -> None:
         hydra_main()
     except USER_ERRORS as err:
         fail(err)
+    except OSError as err:  # e.g. Hydra cannot create the run directory
+        where = f" {err.filename}" if err.filename else ""
+        fail(
+            RlpipeError(
+                f"cannot write{where}: {err.strerror or err}; pick a writable directory "
+                "with hydra.run.dir=<dir> (hydra.sweep.dir=<dir> for -m)"
+            )
+        )

@@ -9,14 +9,18 @@ observations with running statistics that are updated after each iteration and f
 
 Rollouts step the gymnasium copies under a :func:`rlpipe.make_env` env directly: a finished copy
 is not stepped again, and TorchRL's per-step overhead (a third of BipedalWalker's physics) is
-skipped. With ``workers > 1`` the population is cut into chunks that worker processes pull as they
-free up (episode lengths vary a lot); each rolls out its chunk's members as one batch to the end
-and sends back only returns and observation statistics.
+skipped. With several workers (local processes, or Ray actors on this machine or a cluster) the
+population is cut into chunks that the workers pull as they free up (episode lengths vary a
+lot); each rolls out its chunk's members as one batch to the end and sends back only returns and
+observation statistics.
 """
 
 from __future__ import annotations
 
 import multiprocessing as mp
+import os
+import signal
+import socket
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -35,7 +39,7 @@ from torch.nn.utils import parameters_to_vector, vector_to_parameters
 from torchrl.envs import EnvBase
 
 from rlpipe.envs import sub_envs
-from rlpipe.errors import check
+from rlpipe.errors import RlpipeError, check
 
 __all__ = ["ARSSearch", "Normalizer", "PopulationPolicy", "ars_update", "batched_call", "rollout"]
 
@@ -254,31 +258,285 @@ def rollout(
 
 
 class _Rollouts:
-    """A share of the population: its env copies and the policy, stepped in this process."""
+    """A share of the population: its env copies and the policy, stepped in one process.
 
-    def __init__(self, policy: TensorDictModuleBase, env: EnvBase, options: dict[str, Any]):
-        self.policy, self.env, self.envs, self.options = policy, env, sub_envs(env), options
+    Every backend's unit of work: used in this process, in each worker process, and as the Ray
+    actor class (each actor builds its own env copies from ``env_factory``).
+    """
+
+    def __init__(
+        self,
+        policy: TensorDictModuleBase,
+        env_factory: EnvFactory,
+        num_envs: int,
+        seed: int,
+        options: dict[str, Any],
+    ) -> None:
+        self.policy, self.options = policy, options
+        self.env = env_factory(num_envs=num_envs, seed=seed)
+        self.envs = sub_envs(self.env)
 
     def run(
         self, state: dict[str, torch.Tensor] | None, flat: torch.Tensor, seeds: list[int]
     ) -> RolloutResult:
+        """Roll out ``flat``'s members, after loading the policy ``state`` when one is given."""
         if state is not None:
             self.policy.load_state_dict(state)
         return rollout(self.policy, self.envs[: len(flat)], flat, seeds, **self.options)
 
+    def close(self) -> None:
+        if not self.env.is_closed:
+            self.env.close()
+
+
+# what a backend's roll_out returns: (member indices, their result) pairs covering the population
+Shares = list[tuple[torch.Tensor, RolloutResult]]
+
+
+class _InProcess:
+    """The rollout backend that steps the whole population as one batch in this process."""
+
+    def __init__(self, rollouts: _Rollouts, population: int) -> None:
+        self.rollouts, self.members = rollouts, torch.arange(population)
+
+    def roll_out(self, flat: torch.Tensor, seeds: torch.Tensor) -> Shares:
+        return [(self.members, self.rollouts.run(None, flat, seeds.tolist()))]
+
+    def close(self) -> None:
+        self.rollouts.close()
+
+
+class _Pool:
+    """A rollout backend of workers that pull chunks of the population as they free up.
+
+    Episode lengths are heavy-tailed, so each worker takes small chunks (about four per worker
+    and iteration) rather than owning a fixed share; one worker takes everything as one chunk.
+    Each chunk carries the policy's state (the normaliser changes every iteration), its members'
+    parameters and episode seeds; only its :class:`RolloutResult` comes back. Subclasses fill
+    ``workers`` and say how a chunk is sent to a worker (:meth:`_submit`, returning a handle), how
+    to wait until some handles are done (:meth:`_wait`) and how to collect one (:meth:`_collect`).
+    """
+
+    def __init__(self, policy: TensorDictModuleBase, population: int, workers: int) -> None:
+        self.policy = policy
+        self.chunk_size = (
+            -(-population // (CHUNKS_PER_WORKER * workers)) if workers > 1 else population
+        )
+        self.chunks = list(torch.arange(population).split(self.chunk_size))
+        self.workers: list[Any] = []
+
+    def roll_out(self, flat: torch.Tensor, seeds: torch.Tensor) -> Shares:
+        state = self.policy.state_dict()
+        pending = list(range(len(self.chunks)))
+        results: list[Any] = [None] * len(self.chunks)
+        busy: dict[Any, tuple[int, Any]] = {}  # handle -> (chunk index, worker)
+
+        def give(worker: Any) -> None:
+            if pending:
+                index = pending.pop(0)
+                members = self.chunks[index]
+                handle = self._submit(worker, state, flat[members], seeds[members].tolist())
+                busy[handle] = index, worker
+
+        for worker in self.workers:
+            give(worker)
+        while busy:
+            for handle in self._wait(list(busy)):
+                index, worker = busy.pop(handle)
+                results[index] = self._collect(handle)
+                give(worker)
+        return list(zip(self.chunks, results))
+
+    def _submit(self, worker: Any, *message: Any) -> Any:
+        raise NotImplementedError
+
+    def _wait(self, handles: list[Any]) -> list[Any]:
+        raise NotImplementedError
+
+    def _collect(self, handle: Any) -> RolloutResult:
+        raise NotImplementedError
+
 
 def _worker(conn: Any, payload: bytes) -> None:
+    # Ctrl-C reaches the whole process group: the parent checkpoints and stops the workers
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     torch.set_num_threads(1)
-    policy, env_factory, num_envs, seed, options = cloudpickle.loads(payload)
-    rollouts = _Rollouts(policy, env_factory(num_envs=num_envs, seed=seed), options)
+    rollouts = _Rollouts(*cloudpickle.loads(payload))
     conn.send(None)  # ready
     try:
         while (message := conn.recv()) is not None:
             conn.send(rollouts.run(*message))
-    except EOFError:  # the parent exited without close()
+    except (EOFError, BrokenPipeError):  # the parent exited (or was killed) without close()
         pass
     finally:
-        rollouts.env.close()
+        rollouts.close()
+
+
+def _start_method() -> str:
+    """``fork`` where it is safe (a worker is up in milliseconds), else ``spawn``.
+
+    ``spawn`` re-imports torch and TorchRL in every worker (seconds); ``fork`` cannot be used
+    once CUDA is initialised in this process.
+    """
+    if "fork" in mp.get_all_start_methods() and not torch.cuda.is_initialized():
+        return "fork"
+    return "spawn"
+
+
+class _Processes(_Pool):
+    """Worker processes on this machine, one pipe each."""
+
+    def __init__(
+        self,
+        policy: TensorDictModuleBase,
+        env_factory: EnvFactory,
+        population: int,
+        workers: int,
+        seed: int,
+        options: dict[str, Any],
+    ) -> None:
+        super().__init__(policy, population, workers)
+        ctx = mp.get_context(_start_method())
+        self._procs: list[Any] = []
+        for w in range(workers):
+            parent, child = ctx.Pipe()
+            payload = cloudpickle.dumps((policy, env_factory, self.chunk_size, seed + w, options))
+            proc = ctx.Process(target=_worker, args=(child, payload), daemon=True)
+            proc.start()
+            child.close()
+            self.workers.append(parent)
+            self._procs.append(proc)
+        for conn in self.workers:
+            conn.recv()  # wait until every worker has built its envs
+
+    def _submit(self, worker: Any, *message: Any) -> Any:
+        worker.send(message)
+        return worker
+
+    def _wait(self, handles: list[Any]) -> list[Any]:
+        return wait(handles)
+
+    def _collect(self, handle: Any) -> RolloutResult:
+        return handle.recv()
+
+    def close(self) -> None:
+        for conn in self.workers:
+            conn.send(None)
+            conn.close()
+        for proc in self._procs:
+            proc.join(timeout=10)
+        self.workers, self._procs = [], []
+
+
+RAY_INSTALL = 'pip install "rlpipe[ray]"'
+RAY_PORT = 6379  # the port of a Ray head's GCS when an address names none
+
+
+def _check_reachable(address: str) -> None:
+    """Fail in one line, within seconds, when nothing listens at a ``host:port`` Ray address.
+
+    ``ray.init`` would retry an unreachable address for minutes.
+    """
+    host, _, port = address.removeprefix("ray://").rpartition(":")
+    if not host:
+        host, port = port, str(RAY_PORT)
+    check(port.isdigit(), f"Ray address {address!r} must be host:port, ray://host:port or auto")
+    try:
+        socket.create_connection((host, int(port)), timeout=5).close()
+    except OSError as err:
+        raise RlpipeError(
+            f"cannot reach a Ray cluster at {address} ({err.strerror or err}); start one with "
+            "`ray start --head` there, or fix the address"
+        ) from err
+
+
+def _connect_ray(address: str | None, num_cpus: int | None) -> bool:
+    """Start Ray here (``address`` None, ``num_cpus`` CPUs) or join the cluster at ``address``.
+
+    Returns whether this call initialised Ray (and so should shut it down); a Ray the caller
+    already initialised is used as it is.
+    """
+    try:
+        import ray
+    except ImportError as err:
+        raise RlpipeError(f"the Ray backend needs Ray; install it with: {RAY_INSTALL}") from err
+    if ray.is_initialized():
+        return False
+    if address not in (None, "auto"):
+        _check_reachable(address)
+    try:
+        ray.init(
+            address=address,
+            num_cpus=num_cpus if address is None else None,
+            include_dashboard=False,
+            log_to_driver=False,
+        )
+    except ConnectionError as err:
+        message = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise RlpipeError(f"cannot connect to Ray at {address}: {message}") from err
+    return True
+
+
+class _RayActors(_Pool):
+    """Ray actors of one CPU each, on this machine or anywhere in a Ray cluster.
+
+    Each actor is a :class:`_Rollouts` holding its own env copies; ``workers`` 0 starts one per
+    CPU of the cluster.
+    """
+
+    def __init__(
+        self,
+        policy: TensorDictModuleBase,
+        env_factory: EnvFactory,
+        population: int,
+        workers: int,
+        seed: int,
+        options: dict[str, Any],
+        *,
+        address: str | None,
+        num_cpus: int | None,
+    ) -> None:
+        self._owns_ray = _connect_ray(address, num_cpus)
+        import ray
+
+        self._ray = ray
+        cpus = int(ray.cluster_resources().get("CPU", 0))
+        workers = min(workers or cpus, population)
+        super().__init__(policy, population, max(workers, 1))
+        try:
+            check(
+                1 <= workers <= cpus,
+                f"{workers} Ray workers need as many CPUs, but the Ray cluster has {cpus}",
+            )
+            actor = ray.remote(num_cpus=1)(_Rollouts)
+            self.workers = [
+                actor.remote(policy, env_factory, self.chunk_size, seed + w, options)
+                for w in range(workers)
+            ]
+            # every actor has built its envs (ray.get raises the error of one that could not)
+            ray.get([worker.__ray_ready__.remote() for worker in self.workers])
+        except BaseException:
+            self.close()
+            raise
+
+    def _submit(self, worker: Any, *message: Any) -> Any:
+        return worker.run.remote(*message)
+
+    def _wait(self, handles: list[Any]) -> list[Any]:
+        return self._ray.wait(handles, num_returns=1)[0]
+
+    def _collect(self, handle: Any) -> RolloutResult:
+        return self._ray.get(handle)
+
+    def close(self) -> None:
+        for worker in self.workers:
+            self._ray.kill(worker)
+        self.workers = []
+        if self._owns_ray and self._ray.is_initialized():
+            self._ray.shutdown()
+
+
+BACKENDS = ("local", "ray")
 
 
 class ARSSearch:
@@ -287,8 +545,20 @@ class ARSSearch:
     ``env_factory(num_envs=n, seed=s)`` builds the rollout envs (a TorchRL env over a gymnasium
     ``SyncVectorEnv``, such as ``functools.partial(rlpipe.make_env, env_cfg)``). ``policy`` maps
     ``"observation"`` to ``"action"``; a ``normalizer`` inside it is updated from the
-    observations of every iteration's rollouts. ``workers`` processes share the ``2N``
-    members, in chunks (1: everything in this process, as one batch).
+    observations of every iteration's rollouts.
+
+    Where the ``2N`` rollouts run is the ``backend``'s business; the update is the same:
+
+    - ``"local"``: ``workers`` processes on this machine share the members in chunks
+      (1: everything in this process, as one batch; 0: one process per core);
+    - ``"ray"``: ``workers`` Ray actors (0: one per CPU of the cluster), on a Ray started here
+      with ``ray_num_cpus`` CPUs (all when None) or on the cluster at ``ray_address``
+      (``host:port``, ``ray://host:port`` or ``auto``).
+
+    Each member's episode seed comes from the search's generator, so for the same ``seed`` every
+    backend and worker count gives the same rollouts and the same θ, for envs whose
+    ``reset(seed=...)`` fixes the episode (Box2D envs keep their world across resets, so there
+    an episode also depends on what its env copy ran before).
     """
 
     def __init__(
@@ -305,6 +575,9 @@ class ARSSearch:
         reward_clip: float | None = None,
         normalizer: Normalizer | None = None,
         workers: int = 1,
+        backend: str = "local",
+        ray_address: str | None = None,
+        ray_num_cpus: int | None = None,
         seed: int = 0,
     ) -> None:
         num_best = num_directions if num_best is None else num_best
@@ -316,37 +589,27 @@ class ARSSearch:
         check(step_size > 0, f"step_size must be > 0, got {step_size}")
         check(noise > 0, f"noise must be > 0, got {noise}")
         check(max_steps >= 1, f"max_steps must be >= 1, got {max_steps}")
-        check(workers >= 1, f"workers must be >= 1, got {workers}")
+        check(workers >= 0, f"workers must be >= 0, got {workers}")
+        check(backend in BACKENDS, f"backend must be one of {', '.join(BACKENDS)}; got {backend!r}")
         self.policy, self.normalizer = policy, normalizer
         self.num_directions, self.num_best = num_directions, num_best
         self.step_size, self.noise = step_size, noise
         self.generator = torch.Generator().manual_seed(seed)
         self.iterations = 0
         population = 2 * num_directions
-        workers = min(workers, population)
-        # Episode lengths are heavy-tailed, so workers pull small chunks of members as they free
-        # up instead of owning a fixed half: about four chunks per worker.
-        chunk = -(-population // (CHUNKS_PER_WORKER * workers)) if workers > 1 else population
-        self._chunks = list(torch.arange(population).split(chunk))
         options = dict(max_steps=max_steps, reward_offset=reward_offset, reward_clip=reward_clip)
-        self._local: _Rollouts | None = None
-        self._conns: list[Any] = []
-        self._procs: list[Any] = []
-        if workers == 1:
-            env = env_factory(num_envs=population, seed=seed)
-            self._local = _Rollouts(policy, env, options)
+        args = (policy, env_factory, population)
+        self._backend: _InProcess | _Pool
+        if backend == "ray":
+            self._backend = _RayActors(
+                *args, workers, seed, options, address=ray_address, num_cpus=ray_num_cpus
+            )
             return
-        ctx = mp.get_context("spawn")
-        for w in range(workers):
-            parent, child = ctx.Pipe()
-            payload = cloudpickle.dumps((policy, env_factory, chunk, seed + w, options))
-            proc = ctx.Process(target=_worker, args=(child, payload), daemon=True)
-            proc.start()
-            child.close()
-            self._conns.append(parent)
-            self._procs.append(proc)
-        for conn in self._conns:
-            conn.recv()  # wait until every worker has built its envs
+        workers = min(workers or os.cpu_count() or 1, population)
+        if workers == 1:
+            self._backend = _InProcess(_Rollouts(*args, seed, options), population)
+        else:
+            self._backend = _Processes(*args, workers, seed, options)
 
     @property
     def theta(self) -> torch.Tensor:
@@ -370,16 +633,16 @@ class ARSSearch:
         # each member's episode seed comes from the search's generator: the same results
         # whichever worker runs it
         seeds = torch.randint(2**31 - 1, (len(flat),), generator=self.generator)
-        results = self._roll_out(flat, seeds)
+        shares = self._backend.roll_out(flat, seeds)
         returns, raw, lengths = (torch.empty(len(flat), dtype=torch.float64) for _ in range(3))
-        for share, result in zip(self._chunks, results):
-            returns[share] = result.returns
-            raw[share] = result.raw_returns
-            lengths[share] = result.lengths.double()
+        for members, result in shares:
+            returns[members] = result.returns
+            raw[members] = result.raw_returns
+            lengths[members] = result.lengths.double()
         plus, minus = returns.float().chunk(2)
         self.theta = ars_update(theta, deltas, plus, minus, self.num_best, self.step_size)
         if self.normalizer is not None:
-            for result in results:
+            for _, result in shares:
                 self.normalizer.merge(result.obs_count, result.obs_mean, result.obs_m2)
         self.iterations += 1
         steps = int(lengths.sum())
@@ -388,40 +651,11 @@ class ARSSearch:
             "return_max": float(raw.max()),
             "env_steps": float(steps),
             "steps_per_second": steps / (time.perf_counter() - start),
-            "rollout_cpu_seconds": sum(result.cpu_seconds for result in results),
+            "rollout_cpu_seconds": sum(result.cpu_seconds for _, result in shares),
             "episode_return": raw.tolist(),  # one per perturbed rollout
             "episode_length": lengths.tolist(),
         }
 
-    def _roll_out(self, flat: torch.Tensor, seeds: torch.Tensor) -> list[RolloutResult]:
-        if self._local is not None:
-            return [self._local.run(None, flat, seeds.tolist())]
-        state = self.policy.state_dict()
-        pending = list(range(len(self._chunks)))
-        results: list[Any] = [None] * len(self._chunks)
-        busy: dict[Any, int] = {}
-
-        def give(conn: Any) -> None:
-            if pending:
-                busy[conn] = pending.pop(0)
-                chunk = self._chunks[busy[conn]]
-                conn.send((state, flat[chunk], seeds[chunk].tolist()))
-
-        for conn in self._conns:
-            give(conn)
-        while busy:
-            for conn in wait(list(busy)):
-                results[busy.pop(conn)] = conn.recv()
-                give(conn)
-        return results
-
     def close(self) -> None:
-        """Stop the worker processes (or close the local envs)."""
-        if self._local is not None and not self._local.env.is_closed:
-            self._local.env.close()
-        for conn in self._conns:
-            conn.send(None)
-            conn.close()
-        for proc in self._procs:
-            proc.join(timeout=10)
-        self._conns, self._procs = [], []
+        """Stop the workers (or close the local envs)."""
+        self._backend.close()

@@ -3,18 +3,25 @@
 from __future__ import annotations
 
 import random
-from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 import torch
-from torchrl.record.loggers import CSVLogger, Logger
 
 from rlpipe.algos import make_algorithm
-from rlpipe.config import Config, LoggerConfig
+from rlpipe.config import Config
+from rlpipe.curves import make_callbacks
 from rlpipe.envs import make_env
 from rlpipe.errors import RlpipeError
-from rlpipe.runner import Runner, RunResult
+from rlpipe.loggers import make_logger
+from rlpipe.rundir import (
+    CONFIG_FILE,
+    config_to_dict,
+    resume_state,
+    save_config,
+    truncate_metrics,
+)
+from rlpipe.runner import Runner, RunResult, check_budget
 
 MAX_EVAL_ENVS = 32
 
@@ -39,13 +46,6 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
-def make_logger(cfg: LoggerConfig, run_dir: str | Path) -> Logger | None:
-    """The TorchRL logger chosen by ``cfg.backend``, writing into ``run_dir``."""
-    if cfg.backend == "csv":
-        return CSVLogger(exp_name="metrics", log_dir=str(run_dir))
-    return None
-
-
 def train(cfg: Config, run_dir: str | Path) -> RunResult:
     """Train ``cfg.algo`` on ``cfg.env`` for ``cfg.total_frames`` frames, writing into ``run_dir``.
 
@@ -53,10 +53,15 @@ def train(cfg: Config, run_dir: str | Path) -> RunResult:
     checkpoint or metrics behind.
     """
     device = resolve_device(cfg.device)
+    run_dir = Path(cfg.resume or run_dir)
+    state = None
+    if cfg.resume or (run_dir / CONFIG_FILE).exists():  # resume=<dir>, or a rerun in that dir
+        state = resume_state(cfg, run_dir, required=bool(cfg.resume))
+    frames = state["frames"] if state else 0
     seed_everything(cfg.seed)
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
-    env = make_env(cfg.env, seed=cfg.seed)
+    env = make_env(cfg.env, seed=cfg.seed + frames)  # a resumed run meets fresh episodes
     eval_env = make_env(
         cfg.env, num_envs=min(cfg.eval_episodes, MAX_EVAL_ENVS), seed=cfg.seed + 10_000
     )
@@ -67,6 +72,15 @@ def train(cfg: Config, run_dir: str | Path) -> RunResult:
         eval_env.close()
         raise
     try:
+        check_budget(algo, cfg.total_frames)
+        try:
+            save_config(cfg, run_dir)
+        except OSError as err:
+            raise RlpipeError(
+                f"cannot write the run directory {run_dir}: {err.strerror or err}; "
+                "pick a writable one with hydra.run.dir=<dir>"
+            ) from err
+        truncate_metrics(run_dir, frames)
         runner = Runner(
             algo,
             eval_env,
@@ -76,10 +90,13 @@ def train(cfg: Config, run_dir: str | Path) -> RunResult:
             eval_episodes=cfg.eval_episodes,
             checkpoint_every=cfg.checkpoint_every,
             keep_checkpoints=cfg.keep_checkpoints,
+            callbacks=make_callbacks(cfg),  # before the logger: a bad video setting writes nothing
             logger=make_logger(cfg.logger, run_dir),
             progress=cfg.progress,
-            extra_state={"config": asdict(cfg)},
+            extra_state={"config": config_to_dict(cfg)},
         )
+        if state is not None:
+            runner.restore(state)
         return runner.run()
     finally:
         algo.close()

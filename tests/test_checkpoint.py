@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
-import pickle
-
 import pytest
 import torch
 
-from rlpipe.checkpoint import checkpoint_path, list_checkpoints, load_checkpoint, save_checkpoint
+from rlpipe.checkpoint import (
+    UnsafeCheckpoint,
+    checkpoint_path,
+    list_checkpoints,
+    load_checkpoint,
+    save_checkpoint,
+)
 
 
 def test_save_load_and_keep_last_k(tmp_path):
@@ -35,6 +39,7 @@ def test_failed_write_leaves_previous_checkpoint_intact(tmp_path):
     with pytest.raises(RuntimeError, match="boom"):
         save_checkpoint({"bad": Unpicklable()}, path)
     assert torch.equal(load_checkpoint(path)["ok"], torch.zeros(1))
+    assert [p.name for p in tmp_path.iterdir()] == [path.name]  # no temp file left behind
 
 
 class _Evil:
@@ -45,5 +50,5 @@ class _Evil:
 def test_pickled_objects_are_refused(tmp_path):
     path = tmp_path / "evil.pt"
     torch.save({"x": _Evil()}, path)
-    with pytest.raises(pickle.UnpicklingError):
+    with pytest.raises(UnsafeCheckpoint, match="refusing checkpoint .*evil.pt"):
         load_checkpoint(path)

@@ -1,4 +1,5 @@
-"""REINFORCE: returns, whole-episode collection, policies within bounds, runner and CLI."""
+"""REINFORCE: returns, whole-episode collection, policies within bounds, the notebook's objective,
+the value baseline, runner and CLI."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from torchrl.envs import ExplorationType, set_exploration_type
 
 from rlpipe.algos import Reinforce, ReinforceConfig
 from rlpipe.algos.reinforce import collect_episodes, make_policy, normalized_returns
+from rlpipe.checkpoint import load_checkpoint, save_checkpoint
 from rlpipe.config import EnvConfig
 from rlpipe.envs import make_env
 from rlpipe.errors import RlpipeError
@@ -73,6 +75,90 @@ def test_categorical_policy_for_discrete_actions():
     env.close()
 
 
+def collected(baseline: str) -> tuple[Reinforce, TensorDict]:
+    """A linear REINFORCE on the continuous CartPole and one epoch's weighed batch."""
+    torch.manual_seed(0)
+    algo = Reinforce(make_env(CONTINUOUS, seed=0), ReinforceConfig(baseline=baseline))
+    batch, _ = collect_episodes(algo.policy, algo.env, 8)
+    algo.weigh(batch)
+    return algo, batch
+
+
+def test_no_baseline_is_the_notebooks_objective():
+    algo, batch = collected("none")
+    linear = next(m for m in algo.policy.modules() if isinstance(m, torch.nn.Linear))
+    out = linear(batch["observation"])  # the notebook's agent.net(batch_states)
+    dist = torch.distributions.Normal(out[:, 0], torch.sigmoid(out[:, 1]))
+    expected = -(dist.log_prob(batch["sample"][:, 0]) * normalized_returns(batch, 0.99)).mean()
+    assert torch.allclose(algo.loss(batch.clone()), expected)
+    algo.close()
+
+
+def test_value_baseline_weights_are_td1_advantages():
+    algo = Reinforce(make_env(CONTINUOUS, seed=0), ReinforceConfig(baseline="value", gamma=0.5))
+    for layer in algo.value.modules():
+        if isinstance(layer, torch.nn.Linear):
+            torch.nn.init.zeros_(layer.weight)
+            torch.nn.init.constant_(layer.bias, 2.0)  # V = 2 everywhere
+    flags = torch.tensor([[0, 1, 0, 0, 1], [0, 1, 0, 0, 0]], dtype=torch.bool).unsqueeze(-1)
+    batch = TensorDict(
+        {
+            "observation": torch.randn(5, 4),
+            "next": {
+                "observation": torch.randn(5, 4),
+                "reward": torch.ones(5, 1),
+                "done": flags[0],
+                "terminated": flags[1],  # episode 1 fails; episode 2 is cut by the time limit
+            },
+        },
+        batch_size=[5],
+    )
+    algo.weigh(batch)
+    targets = torch.tensor([1 + 0.5, 1, 1 + 0.5 + 0.25 + 0.25, 1 + 0.5 + 0.5, 1 + 1])
+    assert torch.allclose(batch["value_target"].squeeze(-1), targets)
+    assert torch.allclose(batch["weight"], targets - 2)
+    algo.close()
+
+
+def test_value_baseline_loss_backpropagates_and_fits_the_targets():
+    algo, batch = collected("value")
+    loss = algo.loss(batch.clone())
+    loss.backward()
+    grads = [p.grad for p in [*algo.policy.parameters(), *algo.value.parameters()]]
+    assert loss.ndim == 0 and all(g is not None and bool(g.abs().sum() > 0) for g in grads)
+
+    def value_error() -> float:
+        with torch.no_grad():
+            return float(
+                (algo.value(batch.clone())["state_value"] - batch["value_target"]).square().mean()
+            )
+
+    before = value_error()
+    for _ in range(100):
+        algo.optimizer.zero_grad()
+        algo.loss(batch.clone()).backward()
+        algo.optimizer.step()
+    assert value_error() < 0.5 * before
+    algo.close()
+
+
+def test_value_baseline_state_resumes_exactly(tmp_path):
+    algo, _ = collected("value")
+    algo.train_step()
+    path = save_checkpoint(algo.state_dict(), tmp_path / "state.pt")
+    restored = Reinforce(make_env(CONTINUOUS, seed=0), ReinforceConfig(baseline="value"))
+    restored.load_state_dict(load_checkpoint(path))  # weights_only=True
+    for mine, theirs in zip(algo.value.parameters(), restored.value.parameters(), strict=True):
+        assert torch.equal(mine, theirs)
+    assert (
+        restored.optimizer.state_dict()["state"].keys()
+        == algo.optimizer.state_dict()["state"].keys()
+    )
+    assert restored.frames == algo.frames and restored.iterations == 1
+    algo.close()
+    restored.close()
+
+
 def test_unsupported_action_space_is_a_clear_error():
     if "rlpipe/TestMultiDiscrete-v0" not in gym.registry:
         gym.register("rlpipe/TestMultiDiscrete-v0", entry_point=MultiDiscreteEnv)
@@ -103,6 +189,9 @@ class MultiDiscreteEnv(gym.Env):
         ({"gamma": 0.0}, "gamma"),
         ({"gamma": 1.01}, "gamma"),
         ({"batch_size": 0}, "batch_size"),
+        ({"baseline": "critic"}, "baseline"),
+        ({"value_lr": 0.0}, "value_lr"),
+        ({"value_hidden_sizes": [0]}, "value_hidden_sizes"),
     ],
 )
 def test_bad_values(kwargs, message):
@@ -146,6 +235,7 @@ BAD_INPUTS = [
     (["algo.episodes_per_epoch=0"], "algo.episodes_per_epoch must be >= 1, got 0"),
     (["algo.gamma=0"], "algo.gamma must be in (0, 1], got 0.0"),
     (["algo.gamma=1.5"], "algo.gamma must be in (0, 1], got 1.5"),
+    (["algo.baseline=critic"], "algo.baseline must be none or value, got 'critic'"),
     (["env=gym", "env.id=multi_action:MultiAction-v0"], "REINFORCE's policy needs discrete"),
 ]
 

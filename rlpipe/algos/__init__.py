@@ -11,6 +11,7 @@ from torchrl.envs import EnvBase
 from rlpipe.algos.ars import ARS, ARSConfig
 from rlpipe.algos.base import Algorithm, Metrics
 from rlpipe.algos.dqn import DQN, DQNConfig
+from rlpipe.algos.mbrl import MBRL, MBRLConfig
 from rlpipe.algos.reinforce import Reinforce, ReinforceConfig
 from rlpipe.errors import RlpipeError
 
@@ -22,6 +23,8 @@ __all__ = [
     "Metrics",
     "DQN",
     "DQNConfig",
+    "MBRL",
+    "MBRLConfig",
     "Reinforce",
     "ReinforceConfig",
     "make_algorithm",
@@ -32,6 +35,7 @@ ALGORITHMS: dict[str, tuple[type, Callable[..., Algorithm]]] = {
     "dqn": (DQNConfig, DQN),
     "reinforce": (ReinforceConfig, Reinforce),
     "ars": (ARSConfig, ARS),
+    "mbrl": (MBRLConfig, MBRL),
 }
 
 

@@ -3,7 +3,6 @@ running observation normaliser, evolved by :class:`rlpipe.evolution.ARSSearch`."
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass, field
 from functools import partial
 from typing import Any
@@ -17,10 +16,18 @@ from torchrl.envs import EnvBase
 from rlpipe.algos.base import Metrics
 from rlpipe.envs import env_config, is_discrete, make_env, num_actions, observation_size
 from rlpipe.errors import RlpipeError, check
-from rlpipe.evolution import ARSSearch, Normalizer
+from rlpipe.evolution import BACKENDS, ARSSearch, Normalizer
 from rlpipe.models import mlp
 
 POLICIES = ("linear", "mlp")
+
+
+@dataclass
+class RayConfig:
+    """Where ``algo.backend=ray`` runs its rollout actors."""
+
+    address: str | None = None  # null: start Ray on this machine; host:port or auto: a cluster
+    num_cpus: int | None = None  # CPUs of a Ray started here (null: all the machine's)
 
 
 @dataclass
@@ -28,6 +35,7 @@ class ARSConfig:
     """ARS hyper-parameters; the defaults are the workshop notebook's."""
 
     name: str = "ars"
+    iterations: int = 1000  # the run's length, unless total_frames stops it first
     num_directions: int = 16  # N: directions sampled per iteration (2N rollouts)
     num_best: int = 16  # b: directions kept for the update, by max(r+, r-)
     step_size: float = 0.02  # α
@@ -38,9 +46,12 @@ class ARSConfig:
     normalize_observations: bool = True  # ARS V2: running mean/variance, frozen for evaluation
     policy: str = "linear"  # linear | mlp
     hidden_sizes: list[int] = field(default_factory=lambda: [32, 32])  # policy=mlp only
-    workers: int = 0  # rollout processes; 0: one per CPU core, 1: this process only
+    workers: int = 0  # rollout workers; 0: one per CPU core (Ray: per CPU of the cluster)
+    backend: str = "local"  # local: this process or worker processes; ray: Ray actors
+    ray: RayConfig = field(default_factory=RayConfig)  # backend=ray only
 
     def __post_init__(self) -> None:
+        check(self.iterations >= 1, f"algo.iterations must be >= 1, got {self.iterations}")
         check(
             self.num_directions >= 1,
             f"algo.num_directions must be >= 1, got {self.num_directions}",
@@ -65,6 +76,12 @@ class ARSConfig:
             f"algo.hidden_sizes must be positive, got {self.hidden_sizes}",
         )
         check(self.workers >= 0, f"algo.workers must be >= 0, got {self.workers}")
+        check(
+            self.backend in BACKENDS,
+            f"algo.backend must be one of {', '.join(BACKENDS)}; got {self.backend!r}",
+        )
+        if isinstance(self.ray, dict):  # rebuilt from a run's config.yaml
+            self.ray = RayConfig(**self.ray)
 
 
 class ClampAction(nn.Module):
@@ -117,7 +134,8 @@ class ARS:
     """Augmented random search on a batched TorchRL env built by :func:`rlpipe.make_env`.
 
     The env given is used for its specs and closed; the ``2N`` perturbed policies roll out on
-    copies of its gymnasium env spread over ``cfg.workers`` processes. One :meth:`train_step`
+    copies of its gymnasium env spread over ``cfg.workers`` processes (``cfg.backend="ray"``:
+    Ray actors, see ``cfg.ray``). One :meth:`train_step`
     is one ARS iteration; ``frames`` counts every step of every perturbed rollout. ARS runs on
     the CPU whatever ``device`` says: its per-step work is one small batched matmul.
     """
@@ -125,6 +143,7 @@ class ARS:
     def __init__(self, env: EnvBase, cfg: ARSConfig, *, device: str | torch.device = "cpu"):
         self.cfg = cfg
         self.frames = 0
+        self.budget = cfg.iterations
         self.policy, normalizer = make_ars_policy(env, cfg)
         seed = int(torch.randint(0, 2**31 - 1, ()))  # from the run's seeded torch generator
         self.search = ARSSearch(
@@ -138,10 +157,18 @@ class ARS:
             reward_offset=cfg.alive_bonus_offset,
             reward_clip=1.0 if cfg.reward_clip else None,
             normalizer=normalizer if cfg.normalize_observations else None,
-            workers=cfg.workers or os.cpu_count() or 1,
+            workers=cfg.workers,
+            backend=cfg.backend,
+            ray_address=cfg.ray.address,
+            ray_num_cpus=cfg.ray.num_cpus,
             seed=seed,
         )
         env.close()
+
+    @property
+    def iterations(self) -> int:
+        """ARS iterations done (the search's counter)."""
+        return self.search.iterations
 
     def train_step(self) -> Metrics:
         stats = self.search.step()

@@ -18,6 +18,9 @@ class Algorithm(Protocol):
 
     policy: TensorDictModuleBase  # deterministic/greedy policy used by evaluation and video
     frames: int  # environment frames consumed so far
+    iterations: int  # train_step calls so far
+    budget: int | None  # the algorithm's own budget in iterations (REINFORCE epochs, ARS
+    # iterations); None: none, the run's total_frames decides
 
     def train_step(self) -> Metrics:
         """Run one iteration (collect and update); advance ``frames``; return metrics."""

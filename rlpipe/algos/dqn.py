@@ -117,7 +117,8 @@ class DQN:
             )
         self.cfg = cfg
         self.device = torch.device(device)
-        self.frames = 0
+        self.frames = self.iterations = 0
+        self.budget = None  # frames only: the run's total_frames
         spec = env.action_spec_unbatched.to(self.device)
         net = mlp(observation_size(env), spec.space.n, cfg.hidden_sizes).to(self.device)
         self.policy = QValueActor(net, in_keys=["observation"], spec=spec)
@@ -162,6 +163,7 @@ class DQN:
     def train_step(self) -> Metrics:
         batch = next(self._batches)
         self.frames += batch.numel()
+        self.iterations += 1
         self.exploration.eps.fill_(epsilon(self.frames, self.cfg))
         self.buffer.extend(batch.reshape(-1).select(*_STORED_KEYS))
         metrics: Metrics = {"train/epsilon": float(self.exploration.eps)}
@@ -187,13 +189,17 @@ class DQN:
         return {
             "loss": self.loss.state_dict(),
             "optimizer": self.optimizer.state_dict(),
+            "buffer": self.buffer.state_dict(),
             "frames": self.frames,
+            "iterations": self.iterations,
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.loss.load_state_dict(state["loss"])
         self.optimizer.load_state_dict(state["optimizer"])
+        self.buffer.load_state_dict(state["buffer"])
         self.frames = int(state["frames"])
+        self.iterations = int(state["iterations"])
         self.exploration.eps.fill_(epsilon(self.frames, self.cfg))
         self.collector.update_policy_weights_()
 

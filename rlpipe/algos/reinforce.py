@@ -1,16 +1,17 @@
 """REINFORCE assembled from TorchRL parts: a ProbabilisticActor, whole episodes stepped on the
-batched env into TensorDicts, and a hand-written policy-gradient objective over minibatches."""
+batched env into TensorDicts, a hand-written policy-gradient objective over minibatches and,
+optionally, a learned state-value baseline whose targets TorchRL's TD(1) estimator computes."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import NestedKey, TensorDictBase
 from tensordict.nn import (
     NormalParamExtractor,
-    TensorDictModule,
     TensorDictModuleBase,
     TensorDictSequential,
     add_custom_mapping,
@@ -19,6 +20,7 @@ from torch import nn
 from torchrl.data import Bounded
 from torchrl.envs import EnvBase, ExplorationType, set_exploration_type
 from torchrl.modules import IndependentNormal, ProbabilisticActor
+from torchrl.objectives.value import TD1Estimator
 from torchrl.objectives.value.functional import reward2go
 
 from rlpipe.algos.base import Metrics, episode_metrics
@@ -35,6 +37,7 @@ class ReinforceConfig:
     """REINFORCE hyper-parameters; the defaults are the REINFORCE/ARS notebook's."""
 
     name: str = "reinforce"
+    epochs: int = 20  # the run's length, unless total_frames stops it first
     hidden_sizes: list[int] = field(default_factory=list)  # []: a linear policy
     episodes_per_epoch: int = 100  # whole episodes collected per train_step
     updates_per_epoch: int = 50  # Adam steps per epoch, each on a random minibatch
@@ -42,8 +45,12 @@ class ReinforceConfig:
     gamma: float = 0.99
     lr: float = 1e-3
     weight_decay: float = 1e-4
+    baseline: str = "none"  # none: the notebook's weights; value: returns minus a learned V(s)
+    value_hidden_sizes: list[int] = field(default_factory=lambda: [64])  # V(s)'s network
+    value_lr: float = 1e-2  # V(s)'s Adam learning rate (same weight decay)
 
     def __post_init__(self) -> None:
+        check(self.epochs >= 1, f"algo.epochs must be >= 1, got {self.epochs}")
         check(
             self.episodes_per_epoch >= 1,
             f"algo.episodes_per_epoch must be >= 1, got {self.episodes_per_epoch}",
@@ -56,9 +63,13 @@ class ReinforceConfig:
         check(0 < self.gamma <= 1, f"algo.gamma must be in (0, 1], got {self.gamma}")
         check(self.lr > 0, f"algo.lr must be > 0, got {self.lr}")
         check(self.weight_decay >= 0, f"algo.weight_decay must be >= 0, got {self.weight_decay}")
+        for key in ("hidden_sizes", "value_hidden_sizes"):
+            sizes = getattr(self, key)
+            check(all(h >= 1 for h in sizes), f"algo.{key} must be positive, got {sizes}")
+        check(self.value_lr > 0, f"algo.value_lr must be > 0, got {self.value_lr}")
         check(
-            all(h >= 1 for h in self.hidden_sizes),
-            f"algo.hidden_sizes must be positive, got {self.hidden_sizes}",
+            self.baseline in ("none", "value"),
+            f"algo.baseline must be none or value, got {self.baseline!r}",
         )
 
 
@@ -74,6 +85,30 @@ class Clip(nn.Module):
         return torch.clamp(x, self.low, self.high)
 
 
+class TensorModule(TensorDictModuleBase):
+    """Run ``module`` on the ``in_keys`` tensors and write its outputs to ``out_keys`` in place.
+
+    What ``TensorDictModule`` does for tensor-to-tensor modules, minus its per-output
+    ``TensorDict.from_any``, which in tensordict 0.14.3 looks ``pandas`` up with
+    ``importlib.util.find_spec`` on every call (~0.1 ms per output when pandas is absent,
+    paid per env step and per minibatch).
+    """
+
+    def __init__(
+        self, module: nn.Module, in_keys: Sequence[NestedKey], out_keys: Sequence[NestedKey]
+    ) -> None:
+        super().__init__()
+        self.module = module
+        self.in_keys, self.out_keys = list(in_keys), list(out_keys)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        out = self.module(*(tensordict.get(key) for key in self.in_keys))
+        outs = out if isinstance(out, tuple) else (out,)
+        for key, value in zip(self.out_keys, outs, strict=True):
+            tensordict.set(key, value)
+        return tensordict
+
+
 def make_policy(env: EnvBase, hidden_sizes: list[int]) -> tuple[TensorDictModuleBase, str]:
     """The stochastic policy and the key holding what its log-probability is taken of.
 
@@ -86,7 +121,7 @@ def make_policy(env: EnvBase, hidden_sizes: list[int]) -> tuple[TensorDictModule
     n_obs = observation_size(env)
     if is_discrete(env):
         net = mlp(n_obs, num_actions(env), hidden_sizes)
-        module = TensorDictModule(net, in_keys=["observation"], out_keys=["logits"])
+        module = TensorModule(net, ["observation"], ["logits"])
         actor = ProbabilisticActor(
             module,
             in_keys=["logits"],
@@ -103,7 +138,7 @@ def make_policy(env: EnvBase, hidden_sizes: list[int]) -> tuple[TensorDictModule
     net = nn.Sequential(
         mlp(n_obs, 2 * spec.shape[0], hidden_sizes), NormalParamExtractor(scale_mapping="sigmoid")
     )
-    module = TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"])
+    module = TensorModule(net, ["observation"], ["loc", "scale"])
     actor = ProbabilisticActor(
         module,
         in_keys=["loc", "scale"],
@@ -112,7 +147,7 @@ def make_policy(env: EnvBase, hidden_sizes: list[int]) -> tuple[TensorDictModule
         distribution_kwargs={"upscale": 1.0},
     )
     clip = Clip(spec.space.low.clone(), spec.space.high.clone())
-    return TensorDictSequential(actor, TensorDictModule(clip, ["sample"], ["action"])), "sample"
+    return TensorDictSequential(actor, TensorModule(clip, ["sample"], ["action"])), "sample"
 
 
 def normalized_returns(batch: TensorDictBase, gamma: float) -> torch.Tensor:
@@ -160,38 +195,67 @@ class Reinforce:
     """REINFORCE (Monte-Carlo policy gradient) on a batched TorchRL env, discrete or continuous.
 
     Each :meth:`train_step` is one epoch: :func:`collect_episodes` runs
-    ``cfg.episodes_per_epoch`` fresh episodes with the sampling policy, returns are discounted
-    and normalised per episode, then ``cfg.updates_per_epoch`` Adam steps maximise
-    ``log pi(a|s) * G`` on random minibatches of ``cfg.batch_size`` frames.
+    ``cfg.episodes_per_epoch`` fresh episodes with the sampling policy, every frame gets a weight
+    (``baseline="none"``: its discounted return normalised within its episode, the notebook's;
+    ``"value"``: TorchRL's TD(1) advantage, the discounted return minus a learned ``V(s)``, which
+    bootstraps on ``V`` where the time limit cut an episode), then ``cfg.updates_per_epoch`` Adam
+    steps on random minibatches of ``cfg.batch_size`` frames minimise ``-log pi(a|s) * weight``
+    (plus, with the baseline, ``V``'s squared error to the epoch's TD(1) targets).
     """
 
     def __init__(self, env: EnvBase, cfg: ReinforceConfig, *, device: str | torch.device = "cpu"):
         self.cfg = cfg
         self.device = torch.device(device)
-        self.frames = 0
+        self.frames = self.iterations = 0
+        self.budget = cfg.epochs
         self.policy, self._sample_key = make_policy(env, cfg.hidden_sizes)
         self.policy.to(self.device)
         self._actor = self.policy if self._sample_key == "action" else self.policy[0]
+        groups = [{"params": list(self.policy.parameters())}]
+        self.value: TensorModule | None = None
+        if cfg.baseline == "value":
+            net = mlp(observation_size(env), 1, cfg.value_hidden_sizes)
+            self.value = TensorModule(net, ["observation"], ["state_value"]).to(self.device)
+            self._estimator = TD1Estimator(gamma=cfg.gamma, value_network=self.value)
+            groups.append({"params": list(self.value.parameters()), "lr": cfg.value_lr})
         self.optimizer = torch.optim.Adam(
-            self.policy.parameters(),
+            groups,
             lr=cfg.lr,
             weight_decay=cfg.weight_decay,
             fused=True,  # one kernel for all parameters
         )
         self.env = env
 
+    @torch.no_grad()
+    def weigh(self, batch: TensorDictBase) -> None:
+        """Write each frame's ``weight`` of ``log pi`` into ``batch`` (with the baseline, TorchRL's
+        TD(1) estimator also writes V's ``value_target``)."""
+        if self.value is None:
+            batch["weight"] = normalized_returns(batch, self.cfg.gamma)
+        else:
+            self._estimator(batch)
+            batch["weight"] = batch["advantage"].squeeze(-1)
+
+    def loss(self, minibatch: TensorDictBase) -> torch.Tensor:
+        """The policy-gradient loss on a minibatch of frames (plus V's when there is a baseline)."""
+        log_prob = self._actor.get_dist(minibatch).log_prob(minibatch[self._sample_key])
+        loss = -(log_prob * minibatch["weight"]).mean()
+        if self.value is not None:
+            error = self.value(minibatch)["state_value"] - minibatch["value_target"]
+            loss = loss + error.square().mean()
+        return loss
+
     def train_step(self) -> Metrics:
         batch, frames = collect_episodes(self.policy, self.env, self.cfg.episodes_per_epoch)
         self.frames += frames
+        self.iterations += 1
         batch = batch.to(self.device)
-        observation, sample = batch["observation"], batch[self._sample_key]
-        weight = normalized_returns(batch, self.cfg.gamma)
+        self.weigh(batch)
+        data = batch.select("observation", self._sample_key, "weight", "value_target", strict=False)
         losses = []
         for _ in range(self.cfg.updates_per_epoch):
-            idx = torch.randint(len(weight), (self.cfg.batch_size,), device=self.device)
-            minibatch = TensorDict(observation=observation[idx], batch_size=[len(idx)])
-            log_prob = self._actor.get_dist(minibatch).log_prob(sample[idx])
-            loss = -(log_prob * weight[idx]).mean()
+            idx = torch.randint(len(data), (self.cfg.batch_size,), device=self.device)
+            loss = self.loss(data[idx])
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
             self.optimizer.step()
@@ -201,16 +265,23 @@ class Reinforce:
         return metrics
 
     def state_dict(self) -> dict[str, Any]:
-        return {
+        state = {
             "policy": self.policy.state_dict(),
             "optimizer": self.optimizer.state_dict(),
             "frames": self.frames,
+            "iterations": self.iterations,
         }
+        if self.value is not None:
+            state["value"] = self.value.state_dict()
+        return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.policy.load_state_dict(state["policy"])
+        if self.value is not None:
+            self.value.load_state_dict(state["value"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.frames = int(state["frames"])
+        self.iterations = int(state["iterations"])
 
     def close(self) -> None:
         """Close the env."""

@@ -1,0 +1,293 @@
+"""Model-based RL: collect with model-predictive control, fit learned dynamics/reward/termination
+models, plan on them (PETS-style, deterministic ensemble). See :mod:`rlpipe.planning`."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModule
+from torch import nn
+from torchrl.collectors import Collector
+from torchrl.data import Bounded, LazyTensorStorage, ReplayBuffer
+from torchrl.envs import EnvBase, ExplorationType
+from torchrl.envs.utils import exploration_type
+
+from rlpipe.algos.base import Metrics, episode_metrics
+from rlpipe.envs import is_discrete, num_actions, observation_size
+from rlpipe.errors import RlpipeError, check
+from rlpipe.planning import ActionCoder, Planner, WorldModel
+
+PLANNERS = ("cem", "random")
+_EVAL_SEED = 0  # the greedy policy's sampling noise: the same for every call
+
+
+@dataclass
+class MBRLConfig:
+    """Model-based RL hyper-parameters; the defaults are a PETS-like recipe for Pendulum-v1."""
+
+    name: str = "mbrl"
+    # models
+    ensemble_size: int = 5  # dynamics MLPs, each fitted on its own minibatches
+    hidden_sizes: list[int] = field(default_factory=lambda: [64, 64])
+    lr: float = 1e-3
+    weight_decay: float = 1e-4
+    batch_size: int = 256
+    fit_steps: int = 200  # Adam steps on the models after each collected batch
+    validation_fraction: float = 0.1  # transitions held out for the logged validation losses
+    buffer_size: int = 100_000
+    # loop
+    warmup_frames: int = 400  # uniformly random actions before the first fit
+    frames_per_batch: int = 200  # env frames collected between two fits
+    # planner
+    planner: str = "cem"  # cem | random (random shooting)
+    horizon: int = 15
+    num_candidates: int = 100
+    cem_iterations: int = 5  # CEM rounds (random shooting: 1)
+    elites: int = 10
+    gamma: float = 0.99
+    init_std: float = 0.5  # CEM's first std, in units of half the action range
+
+    def __post_init__(self) -> None:
+        check(self.ensemble_size >= 1, f"algo.ensemble_size must be >= 1, got {self.ensemble_size}")
+        check(self.horizon >= 1, f"algo.horizon must be >= 1, got {self.horizon}")
+        check(
+            self.num_candidates >= 1,
+            f"algo.num_candidates must be >= 1, got {self.num_candidates}",
+        )
+        check(
+            self.cem_iterations >= 1,
+            f"algo.cem_iterations must be >= 1, got {self.cem_iterations}",
+        )
+        check(
+            1 <= self.elites <= self.num_candidates,
+            f"algo.elites must be in [1, algo.num_candidates={self.num_candidates}], "
+            f"got {self.elites}",
+        )
+        check(
+            self.planner in PLANNERS,
+            f"algo.planner must be one of {', '.join(PLANNERS)}; got {self.planner!r}",
+        )
+        check(0 < self.gamma <= 1, f"algo.gamma must be in (0, 1], got {self.gamma}")
+        check(self.init_std > 0, f"algo.init_std must be > 0, got {self.init_std}")
+        check(self.lr > 0, f"algo.lr must be > 0, got {self.lr}")
+        check(self.weight_decay >= 0, f"algo.weight_decay must be >= 0, got {self.weight_decay}")
+        check(self.batch_size >= 1, f"algo.batch_size must be >= 1, got {self.batch_size}")
+        check(self.fit_steps >= 1, f"algo.fit_steps must be >= 1, got {self.fit_steps}")
+        check(
+            0 <= self.validation_fraction < 1,
+            f"algo.validation_fraction must be in [0, 1), got {self.validation_fraction}",
+        )
+        check(self.buffer_size >= 1, f"algo.buffer_size must be >= 1, got {self.buffer_size}")
+        check(self.warmup_frames >= 0, f"algo.warmup_frames must be >= 0, got {self.warmup_frames}")
+        check(
+            self.frames_per_batch >= 1,
+            f"algo.frames_per_batch must be >= 1, got {self.frames_per_batch}",
+        )
+        check(
+            all(h >= 1 for h in self.hidden_sizes),
+            f"algo.hidden_sizes must be positive, got {self.hidden_sizes}",
+        )
+
+
+def action_coder(env: EnvBase, device: torch.device) -> ActionCoder:
+    """The planner's action encoding for ``env`` (bounds on ``device``); a clear error for
+    unsupported action spaces."""
+    if is_discrete(env):
+        return ActionCoder(num_actions=num_actions(env))
+    spec = env.action_spec_unbatched
+    box = isinstance(spec, Bounded) and spec.dtype.is_floating_point and len(spec.shape) == 1
+    if not box or not bool(torch.isfinite(torch.cat([spec.space.low, spec.space.high])).all()):
+        raise RlpipeError(
+            f"MBRL's planner needs discrete actions or a bounded flat box of continuous actions, "
+            f"but this env's actions are {type(spec).__name__} of shape {tuple(spec.shape)}"
+        )
+    return ActionCoder(low=spec.space.low.to(device), high=spec.space.high.to(device))
+
+
+class MPCPolicy(nn.Module):
+    """``observation -> action`` by planning on the world model (model-predictive control).
+
+    In deterministic (greedy) mode, and outside any exploration context, the planner's noise is
+    re-seeded on every call, so the action is a function of the observation and the models.
+    In random (collection) mode it draws from ``generator``, or, while ``warmup`` is set, the
+    actions are uniformly random.
+    """
+
+    def __init__(self, planner: Planner, generator: torch.Generator) -> None:
+        super().__init__()
+        self.planner = planner
+        self.model = planner.model  # registered, so evaluation finds the policy's device
+        self.generator = generator
+        self.warmup = False
+        self._greedy = torch.Generator()
+
+    def forward(self, observation: torch.Tensor) -> torch.Tensor:
+        batch_shape = observation.shape[:-1]
+        flat = observation.reshape(-1, observation.shape[-1])
+        if exploration_type() != ExplorationType.RANDOM:
+            action = self.planner.plan(flat, self._greedy.manual_seed(_EVAL_SEED))
+        elif self.warmup:
+            action = self._random(len(flat)).to(observation.device)
+        else:
+            action = self.planner.plan(flat, self.generator)
+        return action.reshape(*batch_shape, *action.shape[1:])
+
+    def _random(self, n: int) -> torch.Tensor:
+        coder = self.planner.coder
+        if coder.discrete:
+            return torch.randint(coder.num_actions, (n,), generator=self.generator)
+        return coder.decode(torch.rand(n, coder.size, generator=self.generator) * 2 - 1)
+
+
+_STORED_KEYS = (
+    "observation",
+    "action",
+    ("next", "observation"),
+    ("next", "reward"),
+    ("next", "terminated"),
+)
+
+
+class MBRL:
+    """Model-based RL on a batched TorchRL env, discrete or bounded continuous actions.
+
+    Each :meth:`train_step` collects ``cfg.frames_per_batch`` frames with the MPC planner
+    (uniformly random actions for the first ``cfg.warmup_frames``) through TorchRL's
+    ``Collector``, stores the transitions in a ``ReplayBuffer`` (a random
+    ``cfg.validation_fraction`` of them marked for validation), and, once warm-up is done,
+    runs ``cfg.fit_steps`` Adam steps on the dynamics ensemble, reward and termination models
+    and logs their validation losses. The greedy ``policy`` plans at every step: an evaluation
+    costs ``eval_episodes × episode length / eval envs`` planner calls, each
+    ``cem_iterations × horizon`` batched model steps over (eval envs × candidates × members) rows.
+    """
+
+    def __init__(self, env: EnvBase, cfg: MBRLConfig, *, device: str | torch.device = "cpu"):
+        self.cfg = cfg
+        self.device = torch.device(device)
+        self.frames = self.iterations = 0
+        self.budget = None  # frames only: the run's total_frames
+        coder = action_coder(env, self.device)
+        self.model = WorldModel(
+            observation_size(env), coder.size, cfg.hidden_sizes, cfg.ensemble_size
+        ).to(self.device)
+        planner = Planner(
+            self.model,
+            coder,
+            method=cfg.planner,
+            horizon=cfg.horizon,
+            candidates=cfg.num_candidates,
+            iterations=cfg.cem_iterations,
+            elites=cfg.elites,
+            gamma=cfg.gamma,
+            init_std=cfg.init_std,
+        )
+        # the generators this algorithm owns, seeded from the global one (seed_everything)
+        seeds = torch.randint(2**62, (2,)).tolist()
+        self.fit_generator = torch.Generator().manual_seed(seeds[0])
+        self.mpc = MPCPolicy(planner, torch.Generator().manual_seed(seeds[1]))
+        self.mpc.warmup = cfg.warmup_frames > 0
+        self.policy = TensorDictModule(self.mpc, in_keys=["observation"], out_keys=["action"])
+        self.optimizer = torch.optim.Adam(
+            self.model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay
+        )
+        self.buffer = ReplayBuffer(
+            storage=LazyTensorStorage(cfg.buffer_size, device=self.device),
+            batch_size=cfg.batch_size,
+        )
+        num_envs = max(env.batch_size.numel(), 1)
+        self.collector = Collector(
+            env,
+            self.policy,
+            frames_per_batch=math.ceil(cfg.frames_per_batch / num_envs) * num_envs,
+            total_frames=-1,
+            policy_device=self.device,
+            storing_device=self.device,
+        )
+        self._batches = iter(self.collector)
+
+    def train_step(self) -> Metrics:
+        batch = next(self._batches)
+        self.frames += batch.numel()
+        self.iterations += 1
+        data = batch.reshape(-1).select(*_STORED_KEYS)
+        held_out = torch.rand(len(data), generator=self.fit_generator)
+        data["validation"] = (held_out < self.cfg.validation_fraction).to(self.device)
+        self.model.observe(
+            data["observation"],
+            data["next", "observation"],
+            data["next", "reward"],
+            data["next", "terminated"],
+        )
+        self.buffer.extend(data)
+        metrics = episode_metrics(batch)
+        if self.frames >= self.cfg.warmup_frames:
+            metrics.update(self.fit())
+            self.mpc.warmup = False
+        return metrics
+
+    def fit(self) -> Metrics:
+        """``cfg.fit_steps`` Adam steps on the models; training and validation losses."""
+        data = self.buffer[: len(self.buffer)]
+        train, valid = data[~data["validation"]], data[data["validation"]]
+        if len(train) == 0:
+            return {}
+        members = self.cfg.ensemble_size
+        terminal = float(train["next", "terminated"].float().mean())
+        weight = (1 - terminal) / terminal if terminal > 0 else 1.0  # balanced classes
+        totals = []
+        for _ in range(self.cfg.fit_steps):
+            idx = torch.randint(
+                len(train), (members, self.cfg.batch_size), generator=self.fit_generator
+            )
+            losses = self.model.losses(*self._tensors(train[idx.to(self.device)]), weight)
+            loss = sum(losses.values())
+            self.optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            self.optimizer.step()
+            totals.append(loss.detach())
+        metrics: Metrics = {"train/model_loss": float(torch.stack(totals).mean())}
+        if len(valid):
+            with torch.no_grad():
+                valid = valid.unsqueeze(0).expand(members, len(valid))
+                for name, value in self.model.losses(*self._tensors(valid), weight).items():
+                    metrics[f"train/val_{name}_loss"] = float(value)
+        return metrics
+
+    def _tensors(self, data: TensorDictBase) -> tuple[torch.Tensor, ...]:
+        """Observation, encoded action, next observation, reward, terminated of ``[E, N]`` rows."""
+        return (
+            data["observation"],
+            self.mpc.planner.coder.encode(data["action"]),
+            data["next", "observation"],
+            data["next", "reward"].squeeze(-1),
+            data["next", "terminated"].squeeze(-1),
+        )
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "model": self.model.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "buffer": self.buffer.state_dict(),
+            "frames": self.frames,
+            "iterations": self.iterations,
+            "fit_generator": self.fit_generator.get_state(),
+            "plan_generator": self.mpc.generator.get_state(),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.model.load_state_dict(state["model"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.buffer.load_state_dict(state["buffer"])
+        self.frames = int(state["frames"])
+        self.iterations = int(state["iterations"])
+        self.fit_generator.set_state(state["fit_generator"])
+        self.mpc.generator.set_state(state["plan_generator"])
+        self.mpc.warmup = self.frames < self.cfg.warmup_frames
+
+    def close(self) -> None:
+        """Stop the collector and close its env."""
+        self.collector.shutdown()

@@ -1,0 +1,247 @@
+"""Learning curves from a run's CSV metrics: ``curve.png`` per run and seed-grouped comparisons.
+
+Metrics are TorchRL ``CSVLogger`` files, ``<run dir>/metrics/scalars/<name>.csv``, one
+``frames,value`` row per logged value and no header.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.figure import Figure
+from omegaconf import OmegaConf
+
+from rlpipe.config import Config
+from rlpipe.errors import check
+from rlpipe.loggers import METRICS_DIR, CloseLogger
+from rlpipe.runner import Callback, Runner, RunResult
+from rlpipe.video import VideoCallback
+
+CURVE_FILE = "curve.png"
+EVAL_METRIC = "eval/return_mean"
+WINDOW = 100  # episodes in the training-return moving average (as the DQN notebook plotted)
+
+
+def metric_path(run_dir: str | Path, name: str) -> Path:
+    """Where ``name`` (e.g. ``eval/return_mean``) lives in ``run_dir``."""
+    return Path(run_dir) / METRICS_DIR / "scalars" / f"{name}.csv"
+
+
+def read_metric(run_dir: str | Path, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(frames, values)`` of one metric; empty arrays when the run did not log it."""
+    path = metric_path(run_dir, name)
+    if not path.is_file() or path.stat().st_size == 0:
+        return np.empty(0), np.empty(0)
+    rows = np.loadtxt(path, delimiter=",", ndmin=2)
+    return rows[:, 0], rows[:, 1]
+
+
+def moving_average(values: np.ndarray, window: int) -> np.ndarray:
+    """Mean of the trailing ``window`` values at each point (fewer at the start)."""
+    sums = np.cumsum(np.concatenate([[0.0], values]))
+    ends = np.arange(1, len(values) + 1)
+    starts = np.maximum(ends - window, 0)
+    return (sums[ends] - sums[starts]) / (ends - starts)
+
+
+def _title(run_dir: Path) -> str:
+    config = run_dir / "config.yaml"
+    if not config.is_file():
+        return str(run_dir)
+    cfg = OmegaConf.load(config)
+    return f"{OmegaConf.select(cfg, 'algo.name')} on {OmegaConf.select(cfg, 'env.id')}: {run_dir}"
+
+
+def plot_run(run_dir: str | Path, path: str | Path | None = None) -> Path:
+    """Draw ``run_dir``'s greedy eval return and training episode return into ``curve.png``."""
+    run_dir = Path(run_dir)
+    frames, mean = read_metric(run_dir, EVAL_METRIC)
+    check(
+        len(frames) > 0,
+        f"no metrics in {run_dir}: {metric_path(run_dir, EVAL_METRIC)} is missing or empty "
+        "(runs with logger=none write none)",
+    )
+    fig = Figure(figsize=(12, 4.5), dpi=100, layout="constrained")
+    left, right = fig.subplots(1, 2)
+    _, std = read_metric(run_dir, "eval/return_std")
+    left.plot(frames, mean, marker="o", color="C0", label="greedy eval mean")
+    if len(std) == len(mean):
+        left.fill_between(frames, mean - std, mean + std, color="C0", alpha=0.2, label="± std")
+    _label(left, "greedy evaluation return")
+    ep_frames, returns = read_metric(run_dir, "train/episode_return")
+    if len(returns):
+        right.plot(ep_frames, returns, color="C1", alpha=0.35, lw=0.8, label="episode return")
+        average = moving_average(returns, WINDOW)
+        right.plot(ep_frames, average, color="C3", lw=2, label=f"{WINDOW}-episode moving average")
+    _label(right, "training episode return")
+    fig.suptitle(_title(run_dir), fontsize=10)
+    path = Path(path) if path else run_dir / CURVE_FILE
+    fig.savefig(path)
+    return path
+
+
+def _label(ax: Axes, title: str) -> None:
+    ax.set_title(title)
+    ax.set_xlabel("frames")
+    ax.set_ylabel("return")
+    ax.grid(alpha=0.3)
+    if ax.has_data():
+        ax.legend(loc="best", fontsize=8)
+
+
+# ---- many runs: seeds grouped, mean/IQM line with a bootstrap band -------------------------
+
+
+@dataclass
+class Group:
+    """Runs that differ only by seed, and the overrides that set them apart from other groups."""
+
+    label: str
+    runs: list[Path]
+
+
+def find_runs(dirs: Sequence[str | Path], metric: str = EVAL_METRIC) -> list[Path]:
+    """Run dirs in ``dirs`` or below them (a multirun sweep dir) that logged ``metric``."""
+    runs: list[Path] = []
+    for directory in map(Path, dirs):
+        check(directory.is_dir(), f"{directory} is not a directory")
+        relative = metric_path("", metric)
+        found = sorted(
+            p.parents[len(relative.parts) - 1]
+            for p in directory.rglob(str(relative))
+            if p.stat().st_size > 0
+        )
+        check(
+            bool(found),
+            f"no metrics under {directory}: no run dir with {METRICS_DIR}/scalars/{metric}.csv "
+            "(runs with logger=none write none)",
+        )
+        runs += found
+    return list(dict.fromkeys(runs))
+
+
+def run_overrides(run_dir: Path) -> list[str]:
+    """``key=value`` overrides that made ``run_dir``: Hydra's record, else its whole config."""
+    hydra_record = run_dir / ".hydra" / "overrides.yaml"
+    if hydra_record.is_file():
+        return list(OmegaConf.load(hydra_record))
+    config = run_dir / "config.yaml"
+    if not config.is_file():
+        return []
+    flat = _flatten(OmegaConf.to_container(OmegaConf.load(config)))
+    return [f"{key}={value}" for key, value in flat.items()]
+
+
+def _flatten(node: dict, prefix: str = "") -> dict[str, object]:
+    flat: dict[str, object] = {}
+    for key, value in node.items():
+        if isinstance(value, dict) and value:
+            flat.update(_flatten(value, f"{prefix}{key}."))
+        else:
+            flat[f"{prefix}{key}"] = value
+    return flat
+
+
+def _key(override: str) -> str:
+    return override.split("=")[0].lstrip("+~")
+
+
+def group_runs(runs: Sequence[Path]) -> list[Group]:
+    """Group runs whose overrides agree but for ``seed``; label groups by what differs."""
+    keyed: dict[frozenset[str], list[Path]] = {}
+    for run in runs:
+        overrides = frozenset(
+            o for o in run_overrides(run) if o.split("=")[0].lstrip("+~") != "seed"
+        )
+        keyed.setdefault(overrides, []).append(run)
+    common = frozenset.intersection(*keyed) if keyed else frozenset()
+    groups = []
+    for overrides, members in keyed.items():
+        label = " ".join(sorted(overrides - common))
+        groups.append(Group(label or members[0].parent.name + "/" + members[0].name, members))
+    return groups
+
+
+def iqm(values: np.ndarray, axis: int = 0) -> np.ndarray:
+    """Interquartile mean: the mean of the middle 50% of ``values`` along ``axis``."""
+    ordered = np.sort(values, axis=axis)
+    n = ordered.shape[axis]
+    cut = n // 4
+    return np.take(ordered, range(cut, n - cut), axis=axis).mean(axis=axis)
+
+
+AGGREGATES = {"mean": lambda v, axis=0: v.mean(axis=axis), "iqm": iqm}
+
+
+def bootstrap_band(
+    values: np.ndarray, aggregate: str, samples: int = 2000, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
+    """95% percentile-bootstrap interval of ``aggregate`` over runs (rows of ``values``)."""
+    rng = np.random.default_rng(seed)
+    picks = rng.integers(0, len(values), size=(samples, len(values)))
+    stats = AGGREGATES[aggregate](values[picks], axis=1)  # (samples, T)
+    return np.percentile(stats, 2.5, axis=0), np.percentile(stats, 97.5, axis=0)
+
+
+def aligned(runs: Sequence[Path], metric: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(frames, values[run, frame])`` on the frames of the shortest run (interpolated)."""
+    curves = [read_metric(run, metric) for run in runs]
+    grid = min((frames for frames, _ in curves), key=lambda f: f[-1])
+    return grid, np.stack([np.interp(grid, frames, values) for frames, values in curves])
+
+
+def plot_groups(
+    groups: Sequence[Group],
+    path: str | Path,
+    *,
+    metric: str = EVAL_METRIC,
+    aggregate: str = "mean",
+    svg: bool = False,
+    title: str | None = None,
+) -> list[Path]:
+    """One line per group (``aggregate`` over its seeds) with a 95% bootstrap band."""
+    check(aggregate in AGGREGATES, f"agg must be one of {', '.join(AGGREGATES)}; got {aggregate!r}")
+    fig = Figure(figsize=(9, 5.5), dpi=100, layout="constrained")
+    ax = fig.subplots()
+    for i, group in enumerate(groups):
+        frames, values = aligned(group.runs, metric)
+        line = AGGREGATES[aggregate](values)
+        n = len(group.runs)
+        ax.plot(frames, line, color=f"C{i}", lw=2, label=f"{group.label} ({aggregate} of {n})")
+        if n > 1:
+            low, high = bootstrap_band(values, aggregate)
+            ax.fill_between(frames, low, high, color=f"C{i}", alpha=0.2)
+    ax.set_xlabel("frames")
+    ax.set_ylabel(metric)
+    ax.set_title(title or f"{metric}: {aggregate} over seeds, 95% bootstrap CI")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="best", fontsize=8)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    written = [path]
+    if svg:
+        written.append(path.with_suffix(".svg"))
+        fig.savefig(written[-1])
+    return written
+
+
+class CurveCallback(Callback):
+    """Draws ``curve.png`` into the run dir when the run ends."""
+
+    def on_end(self, runner: Runner, result: RunResult) -> None:
+        plot_run(runner.run_dir)
+
+
+def make_callbacks(cfg: Config) -> list[Callback]:
+    """What ``train`` records besides metrics: videos (``cfg.video``), ``curve.png``."""
+    callbacks: list[Callback] = []
+    if cfg.video:
+        callbacks.append(VideoCallback(cfg.env, int(cfg.video), seed=cfg.seed + 20_000))
+    if cfg.logger.backend != "none":
+        callbacks.append(CurveCallback())
+    return [*callbacks, CloseLogger()]

@@ -1,0 +1,199 @@
+"""``python -m rlpipe.evaluate run_dir=... [episodes=100] [video=true] [policy=...]``.
+
+Loads a run's config and its newest (or ``checkpoint=<file>``) checkpoint, runs greedy
+episodes, prints mean ± std, min, max and the mean episode length, and writes a JSON summary
+(plus an mp4 of one more greedy episode with ``video=true``). ``policy=random`` and
+``policy=heuristic`` (the notebook's hand-written BipedalWalker controller) are baselines on the
+run's env, or on any ``env=<option>`` without a run dir.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import re
+import sys
+from collections.abc import Iterator, Sequence
+from contextlib import ExitStack
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from hydra import compose, initialize_config_module
+from hydra.core.config_store import ConfigStore
+from omegaconf import MISSING, DictConfig, OmegaConf
+from tensordict.nn import TensorDictModuleBase
+
+from rlpipe.cli import USER_ERRORS, fail
+from rlpipe.config import EnvConfig
+from rlpipe.envs import make_env
+from rlpipe.errors import RlpipeError, check
+from rlpipe.evaluation import evaluate
+from rlpipe.heuristic import heuristic_policy, random_policy
+from rlpipe.loggers import require_extra
+from rlpipe.rundir import load_config, load_run
+from rlpipe.train import MAX_EVAL_ENVS, resolve_device, seed_everything
+from rlpipe.video import frame_rate, make_render_env, record_episode, write_mp4
+
+POLICIES = ("trained", "random", "heuristic")
+
+
+@dataclass
+class EvaluateConfig:
+    """``conf/evaluate.yaml``: what to evaluate, how many episodes, where the results go."""
+
+    run_dir: str | None = None  # a training run's directory (its env and checkpoints)
+    checkpoint: str | None = None  # a file in <run_dir>/checkpoints; null: the newest
+    policy: str = "trained"  # trained | random | heuristic
+    episodes: int = 10
+    video: bool = False  # also write an mp4 of one greedy episode
+    seed: int = 0
+    device: str = "cpu"
+    out: str | None = None  # the JSON summary; null: <run_dir>/evaluation/<policy>[-<ckpt>].json
+    env: EnvConfig | None = field(default_factory=lambda: EnvConfig(id=MISSING))
+
+    def __post_init__(self) -> None:
+        check(self.episodes >= 1, f"episodes must be >= 1, got {self.episodes}")
+        check(
+            self.policy in POLICIES,
+            f"policy must be one of {', '.join(POLICIES)}; got {self.policy!r}",
+        )
+        check(
+            self.run_dir is not None or self.policy != "trained",
+            "policy=trained needs run_dir=<a training run's directory> "
+            "(or evaluate a baseline: policy=random env=<option>)",
+        )
+        check(
+            self.run_dir is None or self.env is None,
+            "the env comes from the run dir's config; drop env=... (or drop run_dir=...)",
+        )
+        check(
+            self.run_dir is not None or self.env is not None,
+            "pass run_dir=<a training run's directory> or env=<option> (e.g. env=bipedal)",
+        )
+
+
+def _unknown_keys(node: DictConfig, prefix: str = "") -> Iterator[str]:
+    """Keys added with ``+key=...`` that the node's dataclass schema does not have."""
+    schema = OmegaConf.get_type(node)
+    if not dataclasses.is_dataclass(schema):
+        return
+    names = {f.name for f in dataclasses.fields(schema)}
+    for key in node.keys():
+        if key not in names:
+            yield f"{prefix}{key}"
+        elif isinstance(node._get_node(key), DictConfig):
+            yield from _unknown_keys(node[key], f"{prefix}{key}.")
+
+
+def compose_config(name: str, overrides: Sequence[str]) -> Any:
+    """Compose ``conf/<name>.yaml`` with ``key=value`` overrides into its dataclass object."""
+    for arg in overrides:
+        check(
+            re.match(r"^[+~]{0,2}[\w.]+=", arg) is not None,
+            f"expected key=value arguments, got {arg!r}; see python -m rlpipe.{name} --help",
+        )
+    with initialize_config_module("rlpipe.conf", version_base="1.3"):
+        cfg = compose(name, overrides=list(overrides))
+    unknown = list(_unknown_keys(cfg))
+    if unknown:
+        raise RlpipeError(f"unknown key {unknown[0]!r}; see python -m rlpipe.{name} --help")
+    if "env" in cfg and OmegaConf.is_missing(cfg.env, "id"):
+        cfg.env = None  # no env option chosen
+    return OmegaConf.to_object(cfg)
+
+
+def _policy(cfg: EvaluateConfig, stack: ExitStack) -> tuple[TensorDictModuleBase, EnvConfig, str]:
+    """The policy to evaluate, its env config and a name for the outputs."""
+    if cfg.policy == "trained":
+        device = resolve_device(cfg.device)
+        loaded = load_run(cfg.run_dir, cfg.checkpoint, device=device)
+        stack.callback(loaded.algo.close)
+        return loaded.algo.policy, loaded.cfg.env, f"trained-{loaded.checkpoint.stem}"
+    env_cfg = load_config(cfg.run_dir).env if cfg.run_dir else cfg.env
+    probe = make_env(env_cfg, num_envs=1)
+    stack.callback(probe.close)
+    factory = random_policy if cfg.policy == "random" else heuristic_policy
+    return factory(probe), env_cfg, cfg.policy
+
+
+def _out_path(cfg: EvaluateConfig, env_cfg: EnvConfig, name: str) -> Path:
+    if cfg.out:
+        return Path(cfg.out)
+    if cfg.run_dir:
+        return Path(cfg.run_dir) / "evaluation" / f"{name}.json"
+    return Path("evaluation") / f"{re.sub(r'[^A-Za-z0-9._-]+', '_', env_cfg.id)}-{name}.json"
+
+
+def run(cfg: EvaluateConfig) -> dict[str, Any]:
+    """Evaluate as ``cfg`` says; write and return the JSON summary."""
+    if cfg.video:
+        require_extra("video", "video=true")
+    seed_everything(cfg.seed)
+    with ExitStack() as stack:
+        policy, env_cfg, name = _policy(cfg, stack)
+        render_env = make_render_env(env_cfg, seed=cfg.seed) if cfg.video else None
+        if render_env is not None:
+            stack.callback(render_env.close)
+        env = make_env(env_cfg, num_envs=min(cfg.episodes, MAX_EVAL_ENVS), seed=cfg.seed)
+        stack.callback(env.close)
+        result = evaluate(policy, env, cfg.episodes)
+        path = _out_path(cfg, env_cfg, name)
+        summary: dict[str, Any] = {
+            "policy": cfg.policy,
+            "env": env_cfg.id,
+            "run_dir": cfg.run_dir,
+            "checkpoint": name.removeprefix("trained-") if cfg.policy == "trained" else None,
+            "episodes": cfg.episodes,
+            "seed": cfg.seed,
+            **result.metrics(prefix=""),
+            "returns": result.returns,
+            "lengths": result.lengths,
+            "video": None,
+        }
+        if render_env is not None:
+            video = write_mp4(
+                record_episode(policy, render_env), path.with_suffix(".mp4"), frame_rate(render_env)
+            )
+            summary["video"] = str(video)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(summary, indent=2) + "\n")
+    summary["json"] = str(path)
+    return summary
+
+
+def summary_line(summary: dict[str, Any]) -> str:
+    """One line: the policy, env and return statistics, and where the files went."""
+    what = summary["policy"] + (f" ({summary['checkpoint']})" if summary["checkpoint"] else "")
+    line = (
+        f"{what} on {summary['env']}: return {summary['return_mean']:.2f} ± "
+        f"{summary['return_std']:.2f} over {summary['episodes']} episodes "
+        f"(min {summary['return_min']:.2f}, max {summary['return_max']:.2f}) | "
+        f"episode length {summary['length_mean']:.1f} | summary {summary['json']}"
+    )
+    return line + (f" | video {summary['video']}" if summary["video"] else "")
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    """``python -m rlpipe.evaluate key=value ...``; user errors: one line, exit 2."""
+    args = sys.argv[1:] if argv is None else list(argv)
+    if {"-h", "--help"} & set(args):
+        print(__doc__.strip() + "\n\nkeys (conf/evaluate.yaml): " + ", ".join(_keys()))
+        return
+    logging.getLogger("torchrl").setLevel(logging.WARNING)
+    try:
+        summary = run(compose_config("evaluate", args))
+    except USER_ERRORS as err:
+        fail(err)
+    print(f"rlpipe: {summary_line(summary)}")
+
+
+def _keys() -> list[str]:
+    return [f.name for f in dataclasses.fields(EvaluateConfig)]
+
+
+ConfigStore.instance().store(name="evaluate_schema", node=EvaluateConfig)
+
+if __name__ == "__main__":
+    main()
