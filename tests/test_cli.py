@@ -48,7 +48,10 @@ def test_multirun_sweeps_seeds(tmp_path):
 BAD_INPUTS = [
     (["algo=nope"], "unknown algo option 'nope'; choose one of: "),
     (["env=nope"], "unknown env option 'nope'; choose one of: bipedal"),
-    (["logger=nope"], "unknown logger option 'nope'; choose one of: csv, none"),
+    (
+        ["logger=nope"],
+        "unknown logger option 'nope'; choose one of: csv, mlflow, none, tensorboard, wandb",
+    ),
     (["env=gym", "env.id=NoSuchEnv-v0"], "cannot make gymnasium env 'NoSuchEnv-v0'"),
     (["env=gym"], "env.id must be set"),
     (["algo.lrr=1"], "Key 'lrr' not in 'DQNConfig'"),

@@ -196,6 +196,17 @@ def test_bad_resume_is_one_line_and_touches_nothing(tmp_path, finished_run, case
     assert {p: p.read_bytes() for p in run_dir.rglob("*") if p.is_file()} == before
 
 
+def test_evaluate_on_a_run_without_checkpoint_is_one_line(tmp_path, finished_run):
+    run_dir = _copy_run(finished_run, tmp_path / "run")
+    for path in list_checkpoints(run_dir / "checkpoints"):
+        path.unlink()
+    result = run_module("rlpipe.evaluate", f"run_dir={run_dir}", "episodes=2", cwd=tmp_path)
+    assert result.returncode == 2, result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("rlpipe: error: "), result.stderr
+    assert f"{run_dir} has no checkpoint yet" in lines[0]
+
+
 class _Drifting:
     """A stand-in algorithm whose loss turns NaN at its third iteration."""
 

@@ -16,6 +16,7 @@ from rlpipe.errors import RlpipeError
 from rlpipe.heuristic import random_policy
 from rlpipe.video import make_render_env, record_episode, write_mp4
 
+EVAL_CSV = "metrics/scalars/eval/return_mean.csv"
 NORENDER_MODULE = """
 import gymnasium as gym
 import numpy as np
@@ -81,6 +82,7 @@ def test_env_without_rgb_array_is_refused(tmp_path, monkeypatch):
 
 
 def test_video_true_records_every_evaluation_and_logs_to_tensorboard(rlpipe_cli, tmp_path):
+    pytest.importorskip("tensorboard", reason="needs the tensorboard extra")
     proc = rlpipe_cli(*TINY, "video=true", "logger=tensorboard")
     assert proc.returncode == 0, proc.stderr
     run = tmp_path / "run"
@@ -102,8 +104,12 @@ def test_video_true_records_every_evaluation_and_logs_to_tensorboard(rlpipe_cli,
 def test_video_cadence_records_past_each_multiple_and_at_the_end(rlpipe_cli, tmp_path):
     proc = rlpipe_cli(*TINY, "eval_every=50", "video=150")
     assert proc.returncode == 0, proc.stderr
-    videos = sorted(p.name for p in (tmp_path / "run" / "videos").iterdir())
-    assert videos == ["eval_000000000150.mp4", "eval_000000000200.mp4"]
+    run = tmp_path / "run"
+    evals = [int(line.split(",")[0]) for line in (run / EVAL_CSV).read_text().splitlines()]
+    assert len(evals) == 4 and evals[-1] == 200  # ~50, ~100, ~150, 200
+    expected = [next(f for f in evals if f >= 150), 200]
+    videos = sorted(p.name for p in (run / "videos").iterdir())
+    assert videos == [f"eval_{f:012d}.mp4" for f in expected]
 
 
 BAD_VIDEO = [
