@@ -14,6 +14,7 @@ from rlpipe.algos import (
     make_algorithm,
 )
 from rlpipe.config import Config, EnvConfig, LoggerConfig
+from rlpipe.curves import find_runs, group_runs, plot_groups, plot_run
 from rlpipe.envs import make_env
 from rlpipe.errors import RlpipeError
 from rlpipe.evaluation import EvalResult, evaluate
@@ -46,10 +47,14 @@ __all__ = [
     "RunResult",
     "Runner",
     "evaluate",
+    "find_runs",
+    "group_runs",
     "load_run",
     "make_algorithm",
     "make_env",
     "make_logger",
+    "plot_groups",
+    "plot_run",
     "seed_everything",
     "train",
 ]

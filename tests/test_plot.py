@@ -1,0 +1,114 @@
+"""``python -m rlpipe.plot`` and ``curve.png``: images that exist, are sane and are not blank."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib.image as mpimg
+import pytest
+from conftest import run_module
+
+from rlpipe import Config, DQNConfig, train
+from rlpipe.plot import main
+
+
+def tiny_config(seed: int) -> Config:
+    return Config(
+        algo=DQNConfig(),
+        seed=seed,
+        device="cpu",
+        total_frames=200,
+        eval_every=100,
+        eval_episodes=2,
+        progress=False,
+    )
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
+    """Two tiny DQN runs that differ only by seed."""
+    root = tmp_path_factory.mktemp("plot")
+    dirs = [root / f"seed{seed}" for seed in (0, 1)]
+    for seed, run_dir in enumerate(dirs):
+        train(tiny_config(seed), run_dir)
+    return dirs
+
+
+def assert_picture(path: Path) -> None:
+    assert path.is_file(), path
+    pixels = mpimg.imread(path)
+    height, width = pixels.shape[:2]
+    assert 200 <= height <= 4000 and 200 <= width <= 4000, pixels.shape
+    assert pixels.std() > 0  # not blank
+
+
+def test_curve_png_of_a_run(runs: list[Path]) -> None:
+    assert_picture(runs[0] / "curve.png")
+
+
+def test_plot_groups_seeds_into_one_line(runs: list[Path], tmp_path: Path) -> None:
+    out = tmp_path / "both.png"
+    proc = run_module("rlpipe.plot", *map(str, runs), "agg=iqm", f"out={out}", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert "1 group(s) from 2 run(s)" in proc.stdout
+    assert "2 seed(s)" in proc.stdout
+    assert str(out) in proc.stdout
+    assert_picture(out)
+
+
+def test_plot_svg(runs: list[Path], tmp_path: Path) -> None:
+    out = tmp_path / "one.png"
+    proc = run_module("rlpipe.plot", str(runs[0]), "svg=true", f"out={out}", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert_picture(out)
+    svg = out.with_suffix(".svg")
+    assert svg.is_file()
+    assert "<svg" in svg.read_text()
+
+
+def test_plot_default_out_is_in_the_dir(runs: list[Path], tmp_path: Path) -> None:
+    proc = run_module("rlpipe.plot", str(runs[1]), cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert_picture(runs[1] / "curves.png")
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["EMPTY"], "no metrics under"),
+        (["EMPTY/missing"], "is not a directory"),
+        (["RUN", "agg=median"], "agg must be one of"),
+        (["RUN", "colour=red"], "unknown option"),
+        ([], "pass at least one run dir"),
+    ],
+)
+def test_plot_bad_input(
+    runs: list[Path],
+    tmp_path: Path,
+    args: list[str],
+    message: str,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """In-process (fast): ``main`` prints one ``rlpipe: error:`` line and exits with 2."""
+    monkeypatch.chdir(tmp_path)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    argv = [a.replace("EMPTY", str(empty)).replace("RUN", str(runs[0])) for a in args]
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    assert exit_info.value.code == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1, lines
+    assert lines[0].startswith("rlpipe: error:") and message in lines[0]
+    assert not list(tmp_path.rglob("*.png"))
+
+
+def test_plot_no_metrics_cli(tmp_path: Path) -> None:
+    """The command line on a dir without metrics: one line on stderr, exit 2, no picture."""
+    proc = run_module("rlpipe.plot", str(tmp_path), cwd=tmp_path)
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1, proc.stderr
+    assert lines[0].startswith("rlpipe: error: no metrics under")
+    assert not list(tmp_path.rglob("*.png"))
