@@ -5,7 +5,9 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -26,6 +28,18 @@ def run_module(
         text=True,
         timeout=timeout,
     )
+
+
+def assert_one_error_line(
+    main: Callable[[list[str]], Any], argv: list[str], message: str, capsys: Any
+) -> None:
+    """``main(argv)`` (an entry point, in-process) exits 2 with one ``rlpipe: error:`` line."""
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    assert exit_info.value.code == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1, lines
+    assert lines[0].startswith("rlpipe: error:") and message in lines[0]
 
 
 @pytest.fixture

@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 
 import pytest
-from conftest import run_module
+from conftest import assert_one_error_line, run_module
 
 from rlpipe import Config, DQNConfig, train
 from rlpipe.evaluate import main
@@ -115,12 +115,7 @@ def test_evaluate_bad_input(
     monkeypatch.chdir(tmp_path)
     missing = tmp_path / "no-such-run"
     argv = [a.replace("MISSING", str(missing)).replace("RUN", str(run_dir)) for a in args]
-    with pytest.raises(SystemExit) as exit_info:
-        main(argv)
-    assert exit_info.value.code == 2
-    lines = capsys.readouterr().err.strip().splitlines()
-    assert len(lines) == 1, lines
-    assert lines[0].startswith("rlpipe: error:") and message in lines[0]
+    assert_one_error_line(main, argv, message, capsys)
     assert not (tmp_path / "evaluation").exists()
 
 

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import matplotlib.image as mpimg
 import pytest
-from conftest import run_module
+from conftest import assert_one_error_line, run_module
 
 from rlpipe import Config, DQNConfig, train
 from rlpipe.plot import main
@@ -95,12 +95,7 @@ def test_plot_bad_input(
     empty = tmp_path / "empty"
     empty.mkdir()
     argv = [a.replace("EMPTY", str(empty)).replace("RUN", str(runs[0])) for a in args]
-    with pytest.raises(SystemExit) as exit_info:
-        main(argv)
-    assert exit_info.value.code == 2
-    lines = capsys.readouterr().err.strip().splitlines()
-    assert len(lines) == 1, lines
-    assert lines[0].startswith("rlpipe: error:") and message in lines[0]
+    assert_one_error_line(main, argv, message, capsys)
     assert not list(tmp_path.rglob("*.png"))
 
 
