@@ -16,43 +16,21 @@ efficiency (2 workers' rate ÷ twice 1 worker's) per backend; Ray ÷ local at eq
 from __future__ import annotations
 
 import os
-import time
 
-from common import compose_config, machine, parser, publish, table
-
-from rlpipe.algos import make_algorithm
-from rlpipe.envs import make_env
-from rlpipe.train import seed_everything
+from common import machine, parser, publish, table, time_ars
 
 RUNS = [("local", 1), ("local", 2), ("ray", 1), ("ray", 2)]
 
 
 def run(seed: int, iterations: int, backend: str, workers: int) -> dict:
-    """``iterations`` ARS iterations on BipedalWalker-v3; steps, seconds, start-up seconds."""
-    cfg = compose_config(
-        "algo=ars",
-        "env=bipedal",
-        f"seed={seed}",
+    """``iterations`` ARS iterations on BipedalWalker-v3 with this backend and worker count."""
+    return time_ars(
+        seed,
+        iterations,
         f"algo.workers={workers}",
         f"algo.backend={backend}",
         f"algo.ray.num_cpus={os.cpu_count()}",
     )
-    seed_everything(seed)
-    start = time.perf_counter()
-    algo = make_algorithm(make_env(cfg.env, seed=seed), cfg.algo)
-    startup = time.perf_counter() - start
-    try:
-        start = time.perf_counter()
-        for _ in range(iterations):
-            algo.train_step()
-        return {
-            "steps": algo.frames,
-            "seconds": time.perf_counter() - start,
-            "startup": startup,
-            "theta": algo.search.theta,
-        }
-    finally:
-        algo.close()
 
 
 def main() -> None:

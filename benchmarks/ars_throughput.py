@@ -17,12 +17,8 @@ from __future__ import annotations
 import os
 import time
 
-from common import compose_config, machine, parser, publish, table
+from common import machine, parser, publish, table, time_ars
 from reference_ars import HP, ARSTrainer
-
-from rlpipe.algos import make_algorithm
-from rlpipe.envs import make_env
-from rlpipe.train import seed_everything
 
 
 def run_reference(seed: int, iterations: int) -> dict:
@@ -38,26 +34,6 @@ def run_reference(seed: int, iterations: int) -> dict:
     }
 
 
-def run_rlpipe(seed: int, iterations: int, workers: int) -> dict:
-    cfg = compose_config("algo=ars", "env=bipedal", f"seed={seed}", f"algo.workers={workers}")
-    seed_everything(seed)
-    start = time.perf_counter()
-    algo = make_algorithm(make_env(cfg.env, seed=seed), cfg.algo)
-    startup = time.perf_counter() - start
-    try:
-        start, cpu = time.perf_counter(), 0.0
-        for _ in range(iterations):
-            cpu += algo.train_step()["train/rollout_cpu_seconds"]
-        return {
-            "steps": algo.frames,
-            "seconds": time.perf_counter() - start,
-            "cpu": cpu,
-            "startup": startup,
-        }
-    finally:
-        algo.close()
-
-
 def main() -> None:
     p = parser(__doc__.splitlines()[0])
     p.add_argument("--iterations", type=int, default=10)
@@ -68,8 +44,10 @@ def main() -> None:
     for seed in args.seeds:
         runs = {
             "reference (notebook loop, 1 process)": run_reference(seed, args.iterations),
-            "rlpipe ARS, algo.workers=1": run_rlpipe(seed, args.iterations, 1),
-            f"rlpipe ARS, algo.workers={os.cpu_count()}": run_rlpipe(seed, args.iterations, 0),
+            "rlpipe ARS, algo.workers=1": time_ars(seed, args.iterations, "algo.workers=1"),
+            f"rlpipe ARS, algo.workers={os.cpu_count()}": time_ars(
+                seed, args.iterations, "algo.workers=0"
+            ),
         }
         reference = runs["reference (notebook loop, 1 process)"]
         base = reference["steps"] / reference["seconds"]

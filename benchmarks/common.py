@@ -139,3 +139,26 @@ def publish(report: str, append: Path | None) -> None:
         with open(append, "a") as f:
             f.write("\n" + report + "\n")
         print(f"appended to {append}")
+
+
+def time_ars(seed: int, iterations: int, *overrides: str) -> dict:
+    """``iterations`` ARS iterations on BipedalWalker-v3 (``algo=ars env=bipedal`` plus
+    ``overrides``): env steps, wall seconds, rollout CPU seconds, start-up seconds, final θ."""
+    cfg = compose_config("algo=ars", "env=bipedal", f"seed={seed}", *overrides)
+    seed_everything(seed)
+    start = time.perf_counter()
+    algo = make_algorithm(make_env(cfg.env, seed=seed), cfg.algo)
+    startup = time.perf_counter() - start
+    try:
+        start, cpu = time.perf_counter(), 0.0
+        for _ in range(iterations):
+            cpu += algo.train_step()["train/rollout_cpu_seconds"]
+        return {
+            "steps": algo.frames,
+            "seconds": time.perf_counter() - start,
+            "cpu": cpu,
+            "startup": startup,
+            "theta": algo.search.theta,
+        }
+    finally:
+        algo.close()

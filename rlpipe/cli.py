@@ -37,7 +37,7 @@ def register_configs() -> None:
         store.store(group="schema/algo", name=name, node=schema)
 
 
-def _unknown_keys(node: DictConfig, prefix: str = "") -> Iterator[str]:
+def unknown_keys(node: DictConfig, prefix: str = "") -> Iterator[str]:
     """Keys added with ``+key=...`` that the node's dataclass schema does not have."""
     schema = OmegaConf.get_type(node)
     if not dataclasses.is_dataclass(schema):
@@ -47,12 +47,12 @@ def _unknown_keys(node: DictConfig, prefix: str = "") -> Iterator[str]:
         if key not in names:
             yield f"{prefix}{key}"
         elif isinstance(node._get_node(key), DictConfig):
-            yield from _unknown_keys(node[key], f"{prefix}{key}.")
+            yield from unknown_keys(node[key], f"{prefix}{key}.")
 
 
 def to_config(cfg: DictConfig) -> Config:
     """Turn Hydra's composed config into :class:`Config` objects (running their checks)."""
-    unknown = list(_unknown_keys(cfg))
+    unknown = list(unknown_keys(cfg))
     if unknown:
         raise RlpipeError(f"unknown config key {unknown[0]!r}; see `python -m rlpipe --cfg job`")
     return OmegaConf.to_object(cfg)

@@ -14,7 +14,7 @@ import json
 import logging
 import re
 import sys
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -22,10 +22,10 @@ from typing import Any
 
 from hydra import compose, initialize_config_module
 from hydra.core.config_store import ConfigStore
-from omegaconf import MISSING, DictConfig, OmegaConf
+from omegaconf import MISSING, OmegaConf
 from tensordict.nn import TensorDictModuleBase
 
-from rlpipe.cli import USER_ERRORS, fail
+from rlpipe.cli import USER_ERRORS, fail, unknown_keys
 from rlpipe.config import EnvConfig
 from rlpipe.envs import make_env
 from rlpipe.errors import RlpipeError, check
@@ -74,19 +74,6 @@ class EvaluateConfig:
         )
 
 
-def _unknown_keys(node: DictConfig, prefix: str = "") -> Iterator[str]:
-    """Keys added with ``+key=...`` that the node's dataclass schema does not have."""
-    schema = OmegaConf.get_type(node)
-    if not dataclasses.is_dataclass(schema):
-        return
-    names = {f.name for f in dataclasses.fields(schema)}
-    for key in node.keys():
-        if key not in names:
-            yield f"{prefix}{key}"
-        elif isinstance(node._get_node(key), DictConfig):
-            yield from _unknown_keys(node[key], f"{prefix}{key}.")
-
-
 def compose_config(name: str, overrides: Sequence[str]) -> Any:
     """Compose ``conf/<name>.yaml`` with ``key=value`` overrides into its dataclass object."""
     for arg in overrides:
@@ -96,7 +83,7 @@ def compose_config(name: str, overrides: Sequence[str]) -> Any:
         )
     with initialize_config_module("rlpipe.conf", version_base="1.3"):
         cfg = compose(name, overrides=list(overrides))
-    unknown = list(_unknown_keys(cfg))
+    unknown = list(unknown_keys(cfg))
     if unknown:
         raise RlpipeError(f"unknown key {unknown[0]!r}; see python -m rlpipe.{name} --help")
     if "env" in cfg and OmegaConf.is_missing(cfg.env, "id"):
