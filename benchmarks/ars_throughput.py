@@ -5,17 +5,26 @@ directions, all kept, α 0.02, ν 0.03, clipped rewards, normalised observations
 and number of iterations. Reported: env steps, wall seconds of the iterations (rlpipe's worker
 start-up is excluded and shown apart) and env-steps/s; the ratio is against the reference. The
 reference's steps include its one evaluation episode per iteration (part of the notebook loop).
+The ceiling row runs one reference loop per core at once, each in its own process (same seed):
+what the machine gives independent single-process loops, with no coordination and no waiting
+for the slowest episode; the line under the table puts rlpipe's multi-worker run against it.
 CPU µs/step (CPU time per env step: the reference's process, rlpipe's rollouts in every process)
 shows the per-step cost apart from the machine's load: on a shared machine the workers get less
 than a core each, and env-steps/s ≈ cores available / CPU µs/step.
 
-    python benchmarks/ars_throughput.py --iterations 10 --append BENCHMARKS.md
+With ``--repeats R`` the three runs of a seed go round R times, interleaved, and each cell is
+the median over the rounds (the ratio: the median of each round's ratio to that round's
+reference), so a burst of load on a shared machine moves one round, not the result.
+
+    python benchmarks/ars_throughput.py --iterations 10 --repeats 3 --append BENCHMARKS.md
 """
 
 from __future__ import annotations
 
+import multiprocessing as mp
 import os
 import time
+from statistics import median
 
 from common import machine, parser, publish, table, time_ars
 from reference_ars import HP, ARSTrainer
@@ -34,41 +43,89 @@ def run_reference(seed: int, iterations: int) -> dict:
     }
 
 
+def _reference_job(seed: int, iterations: int, results: mp.Queue) -> None:
+    results.put(run_reference(seed, iterations))
+
+
+def run_reference_copies(seed: int, iterations: int, copies: int) -> dict:
+    """``copies`` reference loops in as many processes at once: their summed steps and CPU
+    over the wall time until the last one ends."""
+    ctx = mp.get_context("fork" if "fork" in mp.get_all_start_methods() else "spawn")
+    results = ctx.Queue()
+    procs = [
+        ctx.Process(target=_reference_job, args=(seed, iterations, results)) for _ in range(copies)
+    ]
+    start = time.perf_counter()
+    for proc in procs:
+        proc.start()
+    runs = [results.get() for _ in procs]
+    seconds = time.perf_counter() - start
+    for proc in procs:
+        proc.join()
+    return {
+        "steps": sum(r["steps"] for r in runs),
+        "seconds": seconds,
+        "cpu": sum(r["cpu"] for r in runs),
+        "startup": 0.0,
+    }
+
+
+def rate(run: dict) -> float:
+    """Env steps per wall second."""
+    return run["steps"] / run["seconds"]
+
+
 def main() -> None:
     p = parser(__doc__.splitlines()[0])
     p.add_argument("--iterations", type=int, default=10)
+    p.add_argument("--repeats", type=int, default=1, help="interleaved rounds per seed")
     p.set_defaults(seeds=[1])
     args = p.parse_args()
     rows = []
     load_before = os.getloadavg()[0]
+    cores = os.cpu_count() or 1
+    reference = "reference (notebook loop, 1 process)"
+    ceiling = f"ceiling: {cores} reference loops at once, 1 process each"
+    workers = {"rlpipe ARS, algo.workers=1": 1, f"rlpipe ARS, algo.workers={cores}": 0}
+    parallel = list(workers)[-1]
+
+    def run(name: str, seed: int) -> dict:
+        if name == reference:
+            return run_reference(seed, args.iterations)
+        if name == ceiling:
+            return run_reference_copies(seed, args.iterations, cores)
+        return time_ars(seed, args.iterations, f"algo.workers={workers[name]}")
+
+    def rate_ratios(rounds: list[dict], name: str, base: str) -> list[float]:
+        return [rate(r[name]) / rate(r[base]) for r in rounds]
+
+    names = [reference, ceiling, *workers]
+    of_ceiling = []
     for seed in args.seeds:
-        runs = {
-            "reference (notebook loop, 1 process)": run_reference(seed, args.iterations),
-            "rlpipe ARS, algo.workers=1": time_ars(seed, args.iterations, "algo.workers=1"),
-            f"rlpipe ARS, algo.workers={os.cpu_count()}": time_ars(
-                seed, args.iterations, "algo.workers=0"
-            ),
-        }
-        reference = runs["reference (notebook loop, 1 process)"]
-        base = reference["steps"] / reference["seconds"]
-        for name, run in runs.items():
-            rate = run["steps"] / run["seconds"]
+        rounds = [{name: run(name, seed) for name in names} for _ in range(args.repeats)]
+        ratios = rate_ratios(rounds, parallel, ceiling)
+        of_ceiling.append(f"seed {seed} {median(ratios):.2f} ({min(ratios):.2f}–{max(ratios):.2f})")
+        for name in names:
+            done = [r[name] for r in rounds]
+            ratios = rate_ratios(rounds, name, reference)
             rows.append(
                 [
                     seed,
                     name,
-                    f"{run['steps']:,}",
-                    f"{run['seconds']:.1f}",
-                    f"{run['startup']:.1f}",
-                    f"{run['cpu'] / run['steps'] * 1e6:.0f}",
-                    f"{rate:,.0f}",
-                    f"{rate / base:.2f}×",
+                    f"{median(r['steps'] for r in done):,.0f}",
+                    f"{median(r['seconds'] for r in done):.1f}",
+                    f"{median(r['startup'] for r in done):.1f}",
+                    f"{median(r['cpu'] / r['steps'] for r in done) * 1e6:.0f}",
+                    f"{median(rate(r) for r in done):,.0f}",
+                    f"{median(ratios):.2f}×"
+                    + (f" ({min(ratios):.2f}–{max(ratios):.2f})" if len(ratios) > 1 else ""),
                 ]
             )
     load_after = os.getloadavg()[0]
     report = "\n".join(
         [
-            f"### ARS throughput, BipedalWalker-v3, {args.iterations} iterations",
+            f"### ARS throughput, BipedalWalker-v3, {args.iterations} iterations, "
+            f"median of {args.repeats} interleaved round(s) per seed",
             "",
             machine(["torch", "torchrl", "gymnasium", "numpy"]),
             f"· 1-min load average {load_before:.2f} before, {load_after:.2f} after",
@@ -86,6 +143,9 @@ def main() -> None:
                 ],
                 rows,
             ),
+            "",
+            f"{parallel} ÷ ceiling, env-steps/s (median, range over rounds): "
+            + "; ".join(of_ceiling),
         ]
     )
     publish(report, args.append)

@@ -10,9 +10,10 @@ Everything runs in this process, one run after the other, with ``torch.set_num_t
    learned value baseline), each for ``--epochs`` epochs; after every epoch ``--eval-episodes``
    greedy episodes. Reported per setting and seed, each against the reference run of that
    seed: the first epoch whose eval mean is 50 (the horizon) and the training seconds to it,
-   the training seconds of all epochs, the wall ratio, and the training seconds per frame of
-   the training episodes (rlpipe's idle copies, stepped until the batch's longest episode
-   ends, cost time but add no episode frames).
+   the training seconds of all epochs, the wall ratio, the time-to-50 ratio (rlpipe's seconds
+   to 50 over the reference's, or over all of the reference's seconds when it never reaches
+   50), and the training seconds per frame of the training episodes (rlpipe's idle copies,
+   stepped until the batch's longest episode ends, cost time but add no episode frames).
 2. ``algo=reinforce env=cartpole`` (CartPole-v1) with ``--discrete`` overrides: frames and
    training seconds until the greedy eval mean first reaches 475 (eval after every epoch).
 3. ``algo=ars env=cartpole_continuous`` (when the ARS algorithm is registered): frames and
@@ -71,6 +72,14 @@ def rows_to_target(
     return rows
 
 
+def time_to_50_ratio(ours: list[dict], ref: list[dict]) -> float | None:
+    """rlpipe's seconds to 50 over the reference's (all its seconds if it never gets there)."""
+    hit, ref_hit = first_hit(ours, HORIZON), first_hit(ref, HORIZON)
+    if hit is None:
+        return None
+    return hit["seconds"] / (ref_hit or ref[-1])["seconds"]
+
+
 def continuous_row(setting: str, seed: int, ours: list[dict], ref: list[dict]) -> list[object]:
     """One table row: an rlpipe run against the reference run of the same seed."""
     # the reference's frames are its episodes' frames: it never steps past an episode's end
@@ -78,6 +87,7 @@ def continuous_row(setting: str, seed: int, ours: list[dict], ref: list[dict]) -
         ours[-1]["seconds"] / ours[-1]["episode_frames"],
         ref[-1]["seconds"] / ref[-1]["frames"],
     ]
+    to_50 = time_to_50_ratio(ours, ref)
     return [
         setting,
         seed,
@@ -88,17 +98,21 @@ def continuous_row(setting: str, seed: int, ours: list[dict], ref: list[dict]) -
         f"{ref[-1]['eval']:.1f}",
         f"{ref[-1]['seconds']:.1f}",
         f"{ours[-1]['seconds'] / ref[-1]['seconds']:.2f}",
+        "–" if to_50 is None else f"{to_50:.2f}",
         f"{cost[0] * 1e6:.0f} / {cost[1] * 1e6:.0f} = {cost[0] / cost[1]:.2f}",
     ]
 
 
 def summary(setting: str, runs: list[list[dict]], refs: list[list[dict]]) -> str:
-    """How many seeds reached the horizon, and the mean wall ratio, of one rlpipe setting."""
+    """How many seeds reached the horizon, the mean wall ratio and the worst time-to-50 ratio
+    of one rlpipe setting."""
     reached = sum(first_hit(ours, HORIZON) is not None for ours in runs)
     ratio = np.mean([ours[-1]["seconds"] / ref[-1]["seconds"] for ours, ref in zip(runs, refs)])
+    to_50 = [time_to_50_ratio(ours, ref) for ours, ref in zip(runs, refs)]
+    worst = "–" if None in to_50 else f"{max(to_50):.2f}"
     return (
         f"- {setting}: reached 50 within the epochs on {reached}/{len(runs)} seeds; mean wall "
-        f"ratio rlpipe/notebook {ratio:.2f}."
+        f"ratio rlpipe/notebook {ratio:.2f}; worst time-to-50 ratio {worst}."
     )
 
 
@@ -161,6 +175,7 @@ def main() -> None:
                 f"notebook eval @{args.epochs}",
                 f"notebook s / {args.epochs} epochs",
                 "wall ratio rlpipe/notebook",
+                "time-to-50 ratio rlpipe/notebook",
                 "µs per episode frame rlpipe / notebook",
             ],
             rows,

@@ -17,13 +17,14 @@ observation statistics.
 
 from __future__ import annotations
 
+import math
 import multiprocessing as mp
 import os
 import signal
 import socket
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from functools import partial
 from multiprocessing.connection import wait
 from typing import Any
@@ -46,7 +47,7 @@ __all__ = ["ARSSearch", "Normalizer", "PopulationPolicy", "ars_update", "batched
 # (num_envs=..., seed=...) -> a TorchRL env over a gymnasium SyncVectorEnv, e.g.
 # functools.partial(rlpipe.make_env, EnvConfig(id="BipedalWalker-v3"))
 EnvFactory = Callable[..., EnvBase]
-CHUNKS_PER_WORKER = 4
+CHUNKS_PER_WORKER = 8
 
 
 class Normalizer(nn.Module):
@@ -154,8 +155,8 @@ class PopulationPolicy:
     Row ``i`` of ``flat`` (``[P, n]``, the layout of ``parameters_to_vector``) holds member
     ``i``'s parameters. The policy is a ``TensorDictModule`` or a ``TensorDictSequential`` of
     them (one output key each); calling this on a TensorDict whose batch is the population runs
-    them in order, parameter-free ones (normaliser, action head) once on the whole batch and the
-    others through :func:`batched_call`.
+    them in order, parameter-free ones (normaliser, action head) once on the whole batch (through
+    their ``forward``: module hooks are not run) and the others through :func:`batched_call`.
     """
 
     def __init__(self, policy: TensorDictModuleBase, flat: torch.Tensor) -> None:
@@ -171,7 +172,9 @@ class PopulationPolicy:
             for name, param in module.module.named_parameters():
                 params[name] = flat[:, offset : offset + param.numel()].view(-1, *param.shape)
                 offset += param.numel()
-            call = batched_call(module.module, params) if params else module.module
+            # parameter-free modules (normaliser, action head) run their forward directly: the
+            # rollout calls them every step, and nn.Module's call machinery costs a µs each
+            call = batched_call(module.module, params) if params else module.module.forward
             self.steps.append((call, module.in_keys, module.out_keys[0]))
         check(offset == flat.shape[-1], "flat parameters do not match the policy's parameters")
 
@@ -197,8 +200,43 @@ class RolloutResult:
     obs_mean: torch.Tensor
     obs_m2: torch.Tensor
 
+    def __reduce__(self) -> tuple[Any, tuple[Any, ...]]:
+        # pickled as NumPy arrays: on a multiprocessing pipe torch's own reducer would move every
+        # tensor through a new shared-memory file (about half a millisecond each)
+        return _rollout_result, tuple(_numpy(getattr(self, f.name)) for f in fields(self))
 
-@torch.no_grad()
+
+def _numpy(value: Any) -> Any:
+    return value.numpy() if isinstance(value, torch.Tensor) else value
+
+
+def _rollout_result(*values: Any) -> RolloutResult:
+    return RolloutResult(*(torch.as_tensor(v) if isinstance(v, np.ndarray) else v for v in values))
+
+
+# wrappers that only check call order or count steps: a rollout steps the env inside them
+# and ends the episode at the time limit itself
+_BOOKKEEPING_WRAPPERS = (
+    gym.wrappers.TimeLimit,
+    gym.wrappers.OrderEnforcing,
+    gym.wrappers.PassiveEnvChecker,
+)
+
+
+def _inner_env(env: gym.Env) -> tuple[gym.Env, int | None]:
+    """The env under ``env``'s bookkeeping wrappers and its time limit (when only those wrap it).
+
+    Each wrapper layer costs a few µs per step; an env with any other wrapper is stepped as is.
+    """
+    limit, inner = None, env
+    while isinstance(inner, _BOOKKEEPING_WRAPPERS):
+        if isinstance(inner, gym.wrappers.TimeLimit):
+            limit = inner._max_episode_steps
+        inner = inner.env
+    return (inner, limit) if not isinstance(inner, gym.Wrapper) else (env, None)
+
+
+@torch.inference_mode()  # a third cheaper per policy call than no_grad on tiny batches
 def rollout(
     policy: TensorDictModuleBase,
     envs: Sequence[gym.Env],
@@ -213,15 +251,20 @@ def rollout(
 
     Every step calls the policy once for the members still running (a :class:`PopulationPolicy`
     on their observations, a plain dict of tensors: building a TensorDict per step would cost
-    about a tenth of a BipedalWalker step); finished copies are not stepped again.
+    about a tenth of a BipedalWalker step); finished copies are not stepped again. An episode
+    ends at ``max_steps`` or the env's own time limit, whichever comes first.
     Training rewards are ``clip(r + reward_offset, -reward_clip, reward_clip)``.
     """
     cpu = time.process_time()
     size = len(envs)
     seeds = [None] * len(envs) if seeds is None else seeds
-    obs = np.stack([env.reset(seed=seed)[0] for env, seed in zip(envs, seeds)])
+    inner = [_inner_env(env) for env in envs]
+    steps = [env.step for env, _ in inner]
+    limits = [max_steps if limit is None else min(limit, max_steps) for _, limit in inner]
+    obs = np.stack([env.reset(seed=seed)[0] for (env, _), seed in zip(inner, seeds)])
     obs = obs.astype(np.float32)
     returns, raw_returns, lengths = [0.0] * size, [0.0] * size, [0] * size
+    low, high = (-math.inf, math.inf) if reward_clip is None else (-reward_clip, reward_clip)
     running = list(range(size))  # members still in their episode; the policy sees only them
     forward = PopulationPolicy(policy, flat)
     seen = []
@@ -231,14 +274,11 @@ def rollout(
         actions = forward.outputs({"observation": observation})["action"].numpy()
         still = []
         for i, action in zip(running, actions):
-            obs[i], reward, terminated, truncated, _ = envs[i].step(action)
+            obs[i], reward, terminated, truncated, _ = steps[i](action)
             raw_returns[i] += reward
-            reward += reward_offset
-            if reward_clip is not None:
-                reward = min(max(reward, -reward_clip), reward_clip)
-            returns[i] += reward
+            returns[i] += min(max(reward + reward_offset, low), high)
             lengths[i] += 1
-            if not (terminated or truncated):
+            if not (terminated or truncated) and lengths[i] < limits[i]:
                 still.append(i)
         if not still:
             break
@@ -277,11 +317,13 @@ class _Rollouts:
         self.envs = sub_envs(self.env)
 
     def run(
-        self, state: dict[str, torch.Tensor] | None, flat: torch.Tensor, seeds: list[int]
+        self, state: dict[str, Any] | None, flat: torch.Tensor | np.ndarray, seeds: list[int]
     ) -> RolloutResult:
-        """Roll out ``flat``'s members, after loading the policy ``state`` when one is given."""
+        """Roll out ``flat``'s members, after loading the policy ``state`` when one is given
+        (tensors or NumPy arrays: the worker backends send arrays, which pickle fast)."""
         if state is not None:
-            self.policy.load_state_dict(state)
+            self.policy.load_state_dict({key: torch.as_tensor(v) for key, v in state.items()})
+        flat = torch.as_tensor(flat)
         return rollout(self.policy, self.envs[: len(flat)], flat, seeds, **self.options)
 
     def close(self) -> None:
@@ -309,10 +351,11 @@ class _InProcess:
 class _Pool:
     """A rollout backend of workers that pull chunks of the population as they free up.
 
-    Episode lengths are heavy-tailed, so each worker takes small chunks (about four per worker
+    Episode lengths are heavy-tailed, so each worker takes small chunks (about eight per worker
     and iteration) rather than owning a fixed share; one worker takes everything as one chunk.
-    Each chunk carries the policy's state (the normaliser changes every iteration), its members'
-    parameters and episode seeds; only its :class:`RolloutResult` comes back. Subclasses fill
+    A chunk carries its members' parameters and episode seeds, and the policy's state (the
+    normaliser changes every iteration) when it is the worker's first of the iteration, all as
+    NumPy arrays; only its :class:`RolloutResult` comes back. Subclasses fill
     ``workers`` and say how a chunk is sent to a worker (:meth:`_submit`, returning a handle), how
     to wait until some handles are done (:meth:`_wait`) and how to collect one (:meth:`_collect`).
     """
@@ -326,16 +369,25 @@ class _Pool:
         self.workers: list[Any] = []
 
     def roll_out(self, flat: torch.Tensor, seeds: torch.Tensor) -> Shares:
-        state = self.policy.state_dict()
+        state = {key: value.numpy() for key, value in self.policy.state_dict().items()}
+        flat_np = flat.numpy()
         pending = list(range(len(self.chunks)))
         results: list[Any] = [None] * len(self.chunks)
         busy: dict[Any, tuple[int, Any]] = {}  # handle -> (chunk index, worker)
+        updated: set[int] = set()  # workers that have this iteration's policy state
 
         def give(worker: Any) -> None:
             if pending:
                 index = pending.pop(0)
                 members = self.chunks[index]
-                handle = self._submit(worker, state, flat[members], seeds[members].tolist())
+                fresh = id(worker) not in updated
+                updated.add(id(worker))
+                handle = self._submit(
+                    worker,
+                    state if fresh else None,
+                    flat_np[members.numpy()],
+                    seeds[members].tolist(),
+                )
                 busy[handle] = index, worker
 
         for worker in self.workers:

@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import io
+import pickle
+from dataclasses import fields
 from functools import partial
 
+import gymnasium as gym
 import numpy as np
 import pytest
 import torch
@@ -20,9 +23,10 @@ from rlpipe.config import EnvConfig
 from rlpipe.envs import make_env
 from rlpipe.errors import RlpipeError
 from rlpipe.evaluation import evaluate
-from rlpipe.evolution import ARSSearch, Normalizer, PopulationPolicy, ars_update
+from rlpipe.evolution import ARSSearch, Normalizer, PopulationPolicy, ars_update, rollout
 
 CARTPOLE = EnvConfig(id="CartPole-v1")
+PENDULUM = EnvConfig(id="Pendulum-v1")
 
 
 def test_update_rule_by_hand():
@@ -146,14 +150,44 @@ def test_worker_processes_give_the_same_search_as_one_process():
         )
         try:
             before = search.theta
-            stats = search.step()
+            # several iterations: a worker gets the policy state with its first chunk of each
+            steps = [search.step()["env_steps"] for _ in range(3)]
         finally:
             search.close()
         assert not torch.equal(before, search.theta)
-        assert normalizer.count == stats["env_steps"] > 6
+        assert normalizer.count == sum(steps) > 18
         thetas.append(search.theta)
-        counts.append(stats["env_steps"])
+        counts.append(steps)
     assert torch.allclose(thetas[0], thetas[1]) and counts[0] == counts[1]
+
+
+def test_rollout_ends_episodes_at_the_env_time_limit_inside_its_wrappers():
+    """The rollout steps the env under TimeLimit & co. and applies the limit itself; an env with
+    any other wrapper is stepped through it, with the same results."""
+    policy, _ = make_ars_policy(make_env(PENDULUM), ARSConfig())
+    flat = torch.randn(3, parameters_to_vector(policy.parameters()).numel())
+    plain = [gym.make(PENDULUM.id) for _ in range(3)]
+    result = rollout(policy, plain, flat, [0, 1, 2], max_steps=1000)
+    assert result.lengths.tolist() == [200, 200, 200]  # Pendulum-v1's own limit
+    capped = rollout(policy, plain, flat, [0, 1, 2], max_steps=30)
+    assert capped.lengths.tolist() == [30, 30, 30]
+    wrapped = [gym.wrappers.TransformReward(gym.make(PENDULUM.id), float) for _ in range(3)]
+    same = rollout(policy, wrapped, flat, [0, 1, 2], max_steps=1000)
+    assert torch.equal(same.lengths, result.lengths)
+    assert torch.equal(same.raw_returns, result.raw_returns)
+    assert torch.equal(same.obs_mean, result.obs_mean)
+
+
+def test_rollout_result_travels_as_numpy_arrays():
+    policy, _ = make_ars_policy(make_env(CARTPOLE), ARSConfig())
+    flat = torch.randn(2, parameters_to_vector(policy.parameters()).numel())
+    result = rollout(policy, [gym.make(CARTPOLE.id) for _ in range(2)], flat, [3, 4], max_steps=50)
+    data = pickle.dumps(result)
+    assert b"torch" not in data  # not torch's reducer, which ships tensors via shared memory
+    back = pickle.loads(data)
+    for field in fields(result):
+        before, after = getattr(result, field.name), getattr(back, field.name)
+        assert torch.equal(before, after) if isinstance(before, torch.Tensor) else before == after
 
 
 def test_algorithm_checkpoint_holds_normaliser_and_parameters():

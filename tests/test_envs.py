@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import gymnasium as gym
 import pytest
 import torch
 from torchrl.envs.utils import check_env_specs
 
 from rlpipe.config import EnvConfig
-from rlpipe.envs import is_discrete, make_env, num_actions, observation_size
+from rlpipe.envs import env_config, is_discrete, make_env, num_actions, observation_size, sub_envs
 from rlpipe.errors import RlpipeError
 
 
@@ -68,3 +69,33 @@ def test_non_flat_observation_is_rejected(image_env_id):
     env = make_env(EnvConfig(id=image_env_id))
     with pytest.raises(RlpipeError, match="flat vector observation"):
         observation_size(env)
+
+
+@pytest.mark.parametrize(
+    "env_id, vectorization, render_mode, batched",
+    [
+        ("rlpipe/CartPoleContinuous-v0", "auto", None, True),
+        ("rlpipe/CartPoleContinuous-v0", "auto", "rgb_array", False),
+        ("rlpipe/CartPoleNoop-v0", "vector", None, True),
+        ("rlpipe/CartPoleNoop-v0", "sync", None, False),
+        ("CartPole-v1", "auto", None, False),  # its vector env cannot disable autoreset
+    ],
+)
+def test_vectorization_choice_and_env_config(env_id, vectorization, render_mode, batched):
+    cfg = EnvConfig(id=env_id, num_envs=2, max_episode_steps=9, kwargs={})
+    env = make_env(cfg, render_mode=render_mode, vectorization=vectorization)
+    assert isinstance(env.base_env._env, gym.vector.SyncVectorEnv) is not batched
+    assert env_config(env) == EnvConfig(id=env_id, max_episode_steps=9)
+    if batched:
+        with pytest.raises(RlpipeError, match="SyncVectorEnv"):
+            sub_envs(env)
+    else:
+        assert len(sub_envs(env)) == 2
+    env.close()
+
+
+def test_bad_vectorization_is_a_clear_error():
+    with pytest.raises(RlpipeError, match="no vector implementation"):
+        make_env(EnvConfig(id="CartPole-v1"), vectorization="vector")
+    with pytest.raises(RlpipeError, match="auto, sync or vector"):
+        make_env(EnvConfig(id="CartPole-v1"), vectorization="async")

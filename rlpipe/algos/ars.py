@@ -148,7 +148,7 @@ class ARS:
         seed = int(torch.randint(0, 2**31 - 1, ()))  # from the run's seeded torch generator
         self.search = ARSSearch(
             self.policy,
-            partial(make_env, env_config(env)),
+            partial(make_env, env_config(env), vectorization="sync"),
             num_directions=cfg.num_directions,
             num_best=cfg.num_best,
             step_size=cfg.step_size,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import gymnasium as gym
+from gymnasium.envs.registration import load_env_creator
 from gymnasium.vector import AutoresetMode
 from torchrl.data import Categorical, OneHot
 from torchrl.envs import (
@@ -22,6 +23,9 @@ from rlpipe.errors import RlpipeError
 
 __all__ = ["make_env", "observation_size", "is_discrete", "num_actions", "sub_envs", "env_config"]
 
+# make_vec's and make_env's arguments that a vector env's spec records among the env's kwargs
+_NOT_ENV_KWARGS = ("num_envs", "vectorization_mode", "vector_kwargs", "wrappers", "render_mode")
+
 
 def make_env(
     cfg: EnvConfig,
@@ -30,30 +34,45 @@ def make_env(
     seed: int | None = None,
     device: str = "cpu",
     render_mode: str | None = None,
+    vectorization: str = "auto",
 ) -> TransformedEnv:
     """Build ``num_envs`` (default ``cfg.num_envs``) copies of ``cfg.id`` stepped as one batch.
 
-    The copies live in a gymnasium ``SyncVectorEnv`` with autoreset DISABLED, wrapped by
-    TorchRL's ``GymWrapper`` (partial resets go through gymnasium's ``reset_mask``), plus
+    The copies live in a gymnasium vector env with autoreset DISABLED, wrapped by TorchRL's
+    ``GymWrapper`` (partial resets go through gymnasium's ``reset_mask``), plus
     ``DoubleToFloat``, ``StepCounter``, ``InitTracker`` and ``RewardSum`` (``episode_reward``).
     Actions of discrete spaces are integer indices (``Categorical`` spec).
+
+    ``vectorization``: ``"vector"`` is the id's own batched implementation (its gymnasium
+    ``vector_entry_point``, which must support autoreset DISABLED, as rlpipe's CartPoles do and
+    gymnasium's CartPole-v1 does not); ``"sync"`` a ``SyncVectorEnv`` of single envs (what
+    :func:`sub_envs` needs); ``"auto"`` the former when the id has one and no ``render_mode``
+    is asked for.
     """
     n = cfg.num_envs if num_envs is None else num_envs
     if n < 1:
         raise RlpipeError(f"num_envs must be >= 1, got {n}")
+    if vectorization not in ("auto", "sync", "vector"):
+        raise RlpipeError(f"vectorization must be auto, sync or vector, got {vectorization!r}")
+    batched = vectorization != "sync" and _batched_entry_point(cfg.id)
+    if vectorization == "vector" and not batched:
+        raise RlpipeError(f"{cfg.id!r} has no vector implementation with autoreset disabled")
     kwargs = dict(cfg.kwargs)
     if cfg.max_episode_steps is not None:
         kwargs["max_episode_steps"] = cfg.max_episode_steps
     if render_mode is not None:
         kwargs["render_mode"] = render_mode
     try:
-        venv = gym.make_vec(
-            cfg.id,
-            num_envs=n,
-            vectorization_mode="sync",
-            vector_kwargs={"autoreset_mode": AutoresetMode.DISABLED},
-            **kwargs,
-        )
+        if batched and (vectorization == "vector" or render_mode is None):
+            venv = gym.make_vec(cfg.id, n, vectorization_mode="vector_entry_point", **kwargs)
+        else:
+            venv = gym.make_vec(
+                cfg.id,
+                num_envs=n,
+                vectorization_mode="sync",
+                vector_kwargs={"autoreset_mode": AutoresetMode.DISABLED},
+                **kwargs,
+            )
     except gym.error.Error as err:
         raise RlpipeError(
             f"cannot make gymnasium env {cfg.id!r}: {err} (pick a config from conf/env or "
@@ -66,6 +85,16 @@ def make_env(
     if seed is not None:
         env.set_seed(seed)
     return env
+
+
+def _batched_entry_point(env_id: str) -> bool:
+    """Whether ``env_id`` is registered with a vector entry point that disables autoreset."""
+    spec = gym.registry.get(env_id)
+    entry = None if spec is None else spec.vector_entry_point
+    if entry is None:
+        return False
+    creator = load_env_creator(entry) if isinstance(entry, str) else entry
+    return getattr(creator, "metadata", {}).get("autoreset_mode") == AutoresetMode.DISABLED
 
 
 def observation_size(env: EnvBase, key: str = "observation") -> int:
@@ -89,18 +118,30 @@ def num_actions(env: EnvBase) -> int:
     return int(env.action_spec_unbatched.space.n)
 
 
-def sub_envs(env: EnvBase) -> list[gym.Env]:
-    """The gymnasium copies inside a :func:`make_env` env, for loops that step them directly."""
+def _vector_env(env: EnvBase) -> gym.vector.VectorEnv:
+    """The gymnasium vector env inside a :func:`make_env` env."""
     base = env.base_env if isinstance(env, TransformedEnv) else env
     venv = base.__dict__.get("_env")
+    if not isinstance(venv, gym.vector.VectorEnv):
+        raise RlpipeError(f"expected an env built by rlpipe.make_env, got {env!r}")
+    return venv
+
+
+def sub_envs(env: EnvBase) -> list[gym.Env]:
+    """The gymnasium copies inside a :func:`make_env` env (``vectorization="sync"``), for loops
+    that step them directly."""
+    venv = _vector_env(env)
     if not isinstance(venv, gym.vector.SyncVectorEnv):
         raise RlpipeError(
-            f"expected an env built on a gymnasium SyncVectorEnv (rlpipe.make_env), got {env!r}"
+            f"expected an env built on a gymnasium SyncVectorEnv (rlpipe.make_env with "
+            f"vectorization='sync'), got {venv!r}"
         )
     return list(venv.envs)
 
 
 def env_config(env: EnvBase) -> EnvConfig:
     """An :class:`EnvConfig` that builds more copies of the gymnasium env inside ``env``."""
-    spec = sub_envs(env)[0].spec
-    return EnvConfig(id=spec.id, max_episode_steps=spec.max_episode_steps, kwargs=dict(spec.kwargs))
+    spec = _vector_env(env).spec  # gym.make_vec's: the id's spec, with the make_vec arguments
+    kwargs = {k: v for k, v in spec.kwargs.items() if k not in _NOT_ENV_KWARGS}
+    steps = kwargs.pop("max_episode_steps", spec.max_episode_steps)
+    return EnvConfig(id=spec.id, max_episode_steps=steps, kwargs=kwargs)
