@@ -3,10 +3,12 @@ running observation normaliser, evolved by :class:`rlpipe.evolution.ARSSearch`."
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import partial
 from typing import Any
 
+import numpy as np
 import torch
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
@@ -95,12 +97,21 @@ class ClampAction(nn.Module):
     def forward(self, output: torch.Tensor) -> torch.Tensor:
         return torch.clamp(output, self.low, self.high)
 
+    def numpy_forward(self) -> Callable[[np.ndarray], np.ndarray]:
+        """``forward`` on NumPy arrays (for :class:`rlpipe.evolution.PopulationPolicy`)."""
+        low, high = self.low.cpu().numpy(), self.high.cpu().numpy()
+        return lambda output: np.minimum(np.maximum(output, low), high)
+
 
 class ArgmaxAction(nn.Module):
     """Pick the discrete action with the largest output."""
 
     def forward(self, output: torch.Tensor) -> torch.Tensor:
         return output.argmax(-1)
+
+    def numpy_forward(self) -> Callable[[np.ndarray], np.ndarray]:
+        """``forward`` on NumPy arrays (for :class:`rlpipe.evolution.PopulationPolicy`)."""
+        return lambda output: output.argmax(-1)
 
 
 def make_ars_policy(env: EnvBase, cfg: ARSConfig) -> tuple[TensorDictSequential, Normalizer]:
