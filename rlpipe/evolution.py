@@ -71,8 +71,9 @@ class Normalizer(nn.Module):
         return (observation - self.loc) / self.scale
 
     def numpy_forward(self) -> Callable[[np.ndarray], np.ndarray]:
-        """``forward`` as a NumPy function of the current (frozen) statistics."""
-        loc, scale = self.loc.cpu().numpy(), self.scale.cpu().numpy()
+        """``forward`` as a NumPy function of a snapshot of the current ``loc`` and ``scale``
+        (later merges do not change it, on any device)."""
+        loc, scale = self.loc.cpu().numpy().copy(), self.scale.cpu().numpy().copy()
         return lambda observation: (observation - loc) / scale
 
     @torch.no_grad()

@@ -78,6 +78,10 @@ def test_normalizer_matches_the_notebooks_sequential_welford():
     assert torch.allclose(norm(obs).double(), expected, atol=1e-5)
     # the NumPy form the rollouts use computes the same float32 values
     np.testing.assert_array_equal(norm.numpy_forward()(obs.numpy()), norm(obs).numpy())
+    snapshot = norm.numpy_forward()
+    before = snapshot(obs.numpy())
+    norm.observe(data[:50] * 3.0)
+    np.testing.assert_array_equal(snapshot(obs.numpy()), before)  # later merges leave it alone
 
 
 @pytest.mark.parametrize("env_id", ["CartPole-v1", "Pendulum-v1"])

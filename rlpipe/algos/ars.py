@@ -100,7 +100,7 @@ class ClampAction(nn.Module):
     def numpy_forward(self) -> Callable[[np.ndarray], np.ndarray]:
         """``forward`` on NumPy arrays (for :class:`rlpipe.evolution.PopulationPolicy`)."""
         low, high = self.low.cpu().numpy(), self.high.cpu().numpy()
-        return lambda output: np.minimum(np.maximum(output, low), high)
+        return lambda output: np.clip(output, low, high)
 
 
 class ArgmaxAction(nn.Module):
