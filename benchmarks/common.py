@@ -9,6 +9,7 @@ import platform
 import time
 from collections.abc import Sequence
 from datetime import date
+from functools import partial
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
@@ -83,9 +84,8 @@ def train_with_evals(
     or after the eval at ``max_frames``). Training seconds exclude evaluation."""
     cfg = compose_config(*overrides, f"seed={seed}")
     seed_everything(seed)
-    env = make_env(cfg.env, seed=seed)
     eval_env = make_env(cfg.env, num_envs=min(episodes, 32), seed=seed + 10_000)
-    algo = make_algorithm(env, cfg.algo)
+    algo = make_algorithm(partial(make_env, cfg.env, seed=seed), cfg.algo)
     rows, seconds, episode_frames, next_eval = [], 0.0, 0, eval_every
     try:
         for step in range(max_steps):
@@ -147,7 +147,7 @@ def time_ars(seed: int, iterations: int, *overrides: str) -> dict:
     cfg = compose_config("algo=ars", "env=bipedal", f"seed={seed}", *overrides)
     seed_everything(seed)
     start = time.perf_counter()
-    algo = make_algorithm(make_env(cfg.env, seed=seed), cfg.algo)
+    algo = make_algorithm(partial(make_env, cfg.env, seed=seed), cfg.algo)
     startup = time.perf_counter() - start
     try:
         start, cpu = time.perf_counter(), 0.0

@@ -32,7 +32,7 @@ def register_configs() -> None:
     """Store the dataclass schemas so Hydra type-checks every config file and override."""
     store = ConfigStore.instance()
     # env.id has no default on the command line: every conf/env file (or env.id=...) sets it
-    store.store(name="rlpipe_config", node=Config(env=EnvConfig(id=MISSING)))
+    store.store(name="rlpipe_config", node=Config(env=EnvConfig(id=MISSING), algo=MISSING))
     for name, (schema, _) in ALGORITHMS.items():
         store.store(group="schema/algo", name=name, node=schema)
 

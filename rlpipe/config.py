@@ -8,12 +8,10 @@ or a value of the wrong type fails at start-up naming the key, and value checks 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
-from omegaconf import MISSING
-
-from rlpipe.errors import check
+from rlpipe.errors import check, check_choice, check_fields
 
 
 @dataclass
@@ -26,10 +24,11 @@ class EnvConfig:
     kwargs: dict[str, Any] = field(default_factory=dict)  # passed to gymnasium.make
 
     def __post_init__(self) -> None:
-        check(self.num_envs >= 1, f"env.num_envs must be >= 1, got {self.num_envs}")
-        check(
-            self.max_episode_steps is None or self.max_episode_steps >= 1,
-            f"env.max_episode_steps must be >= 1 or null, got {self.max_episode_steps}",
+        check_fields(
+            self,
+            "env.",
+            at_least_one=("num_envs",),
+            optional_at_least_one=("max_episode_steps",),
         )
 
 
@@ -48,29 +47,60 @@ class LoggerConfig:
     tracking_uri: str | None = None  # MLflow; null: sqlite:///<run dir>/mlflow.db
 
     def __post_init__(self) -> None:
-        check(
-            self.backend in LOGGER_BACKENDS,
-            f"logger.backend must be one of {', '.join(LOGGER_BACKENDS)}; got {self.backend!r}",
-        )
-        check(
-            self.mode is None or self.mode in WANDB_MODES,
-            f"logger.mode must be one of {', '.join(WANDB_MODES)} or null; got {self.mode!r}",
-        )
+        check_choice(self.backend, "logger.backend", LOGGER_BACKENDS)
+        check_choice(self.mode, "logger.mode", (*WANDB_MODES, None))
+
+
+# the run's length and cadence: top-level keys of Config that default to the algorithm's own
+RUN_KEYS = ("total_frames", "eval_every", "eval_episodes", "checkpoint_every")
 
 
 @dataclass
-class Config:
-    """A whole training run: environment, algorithm, logger and the runner's knobs."""
+class AlgoConfig:
+    """What every algorithm config holds besides its hyper-parameters: its registry ``name`` and
+    the run length and cadence it needs, used where :class:`Config` leaves them null."""
 
-    env: EnvConfig = field(default_factory=EnvConfig)
-    algo: Any = MISSING  # an algorithm config (e.g. DQNConfig), chosen by the ``algo`` group
-    logger: LoggerConfig = field(default_factory=LoggerConfig)
-    seed: int = 0
-    device: str = "auto"  # auto: cuda when available, else cpu
+    name: str = ""
     total_frames: int | None = None  # None: the algorithm's own budget (epochs, iterations)
     eval_every: int = 10_000  # frames between greedy evaluations (0: only at the end)
     eval_episodes: int = 10
     checkpoint_every: int = 25_000  # frames between checkpoints (0: only at the end)
+
+    def __post_init__(self) -> None:
+        check_run_keys(self, "algo.")
+
+
+def check_run_keys(cfg: Config | AlgoConfig, prefix: str) -> None:
+    """Value checks of the :data:`RUN_KEYS` (null allowed: at the top level it means "the
+    algorithm's"; for ``total_frames`` it means "the algorithm's own budget")."""
+    for key, low in zip(RUN_KEYS, (1, 0, 1, 0)):
+        value = getattr(cfg, key)
+        check(value is None or value >= low, f"{prefix}{key} must be >= {low}, got {value}")
+
+
+def _default_algo() -> AlgoConfig:
+    from rlpipe.algos.dqn import DQNConfig  # the algorithms import this module
+
+    return DQNConfig()
+
+
+@dataclass
+class Config:
+    """A whole training run: environment, algorithm, logger and the runner's knobs.
+
+    ``Config()`` is ``python -m rlpipe`` with no overrides: DQN on CartPole-v1. The run keys
+    (:data:`RUN_KEYS`) left null take the algorithm config's values (see :meth:`resolved`).
+    """
+
+    env: EnvConfig = field(default_factory=EnvConfig)
+    algo: Any = field(default_factory=_default_algo)  # an AlgoConfig (DQNConfig, ARSConfig, ...)
+    logger: LoggerConfig = field(default_factory=LoggerConfig)
+    seed: int = 0
+    device: str = "auto"  # auto: cuda when available, else cpu
+    total_frames: int | None = None  # null: algo.total_frames
+    eval_every: int | None = None  # null: algo.eval_every
+    eval_episodes: int | None = None  # null: algo.eval_episodes
+    checkpoint_every: int | None = None  # null: algo.checkpoint_every
     keep_checkpoints: int = 3
     progress: bool = True
     video: Any = False  # false | true (every evaluation) | N (every N frames); always at the end
@@ -78,23 +108,15 @@ class Config:
     resume: str | None = None  # a run dir to continue from its last good checkpoint
 
     def __post_init__(self) -> None:
-        check(
-            self.total_frames is None or self.total_frames >= 1,
-            f"total_frames must be >= 1 (or null: the algorithm's own budget), got "
-            f"{self.total_frames}",
-        )
-        check(self.eval_every >= 0, f"eval_every must be >= 0, got {self.eval_every}")
-        check(self.eval_episodes >= 1, f"eval_episodes must be >= 1, got {self.eval_episodes}")
-        check(
-            self.checkpoint_every >= 0,
-            f"checkpoint_every must be >= 0, got {self.checkpoint_every}",
-        )
-        check(self.threads >= 0, f"threads must be >= 0, got {self.threads}")
-        check(
-            self.keep_checkpoints >= 1,
-            f"keep_checkpoints must be >= 1, got {self.keep_checkpoints}",
-        )
+        check_run_keys(self, "")
+        check_fields(self, "", non_negative=("threads",), at_least_one=("keep_checkpoints",))
         check(
             isinstance(self.video, bool) or (isinstance(self.video, int) and self.video >= 0),
             f"video must be true, false or a frame cadence N >= 1, got {self.video!r}",
         )
+
+    def resolved(self) -> Config:
+        """This config with every null run key taken from ``algo`` (``total_frames`` may stay
+        null: the algorithm's own budget of epochs or iterations then ends the run)."""
+        own = {key: getattr(self.algo, key) for key in RUN_KEYS if getattr(self, key) is None}
+        return replace(self, **own)

@@ -7,6 +7,7 @@ included) before training; ``evaluate``, ``resume`` and research code rebuild th
 from __future__ import annotations
 
 from dataclasses import dataclass, fields, is_dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -108,10 +109,8 @@ def load_run(
         state = load_checkpoint(path)
     except Exception as err:  # noqa: BLE001  (torch raises many kinds on a damaged file)
         raise RlpipeError(f"cannot load checkpoint {path}: {err}".splitlines()[0]) from err
-    if hasattr(cfg.algo, "workers"):  # ARS: no rollout processes or Ray just to hold a policy
-        cfg.algo.workers, cfg.algo.backend = 1, "local"
-    env = make_env(cfg.env, num_envs=num_envs, seed=cfg.seed)
-    algo = make_algorithm(env, cfg.algo, device=device)
+    factory = partial(make_env, cfg.env, num_envs=num_envs, seed=cfg.seed)
+    algo = make_algorithm(factory, cfg.algo, device=device)
     algo.load_state_dict(state["algo"])
     return LoadedRun(cfg, algo, path)
 

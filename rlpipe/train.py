@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import random
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -49,9 +50,11 @@ def seed_everything(seed: int) -> None:
 def train(cfg: Config, run_dir: str | Path) -> RunResult:
     """Train ``cfg.algo`` on ``cfg.env`` for ``cfg.total_frames`` frames, writing into ``run_dir``.
 
-    Everything is validated and built before anything is written, so a bad config leaves no
-    checkpoint or metrics behind.
+    Null run keys take the algorithm's values (:meth:`Config.resolved`); the resolved config is
+    what ``config.yaml`` records. Everything is validated and built before anything is written,
+    so a bad config leaves no checkpoint or metrics behind.
     """
+    cfg = cfg.resolved()
     device = resolve_device(cfg.device)
     run_dir = Path(cfg.resume or run_dir)
     state = None
@@ -61,14 +64,14 @@ def train(cfg: Config, run_dir: str | Path) -> RunResult:
     seed_everything(cfg.seed)
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
-    env = make_env(cfg.env, seed=cfg.seed + frames)  # a resumed run meets fresh episodes
     eval_env = make_env(
         cfg.env, num_envs=min(cfg.eval_episodes, MAX_EVAL_ENVS), seed=cfg.seed + 10_000
     )
-    try:
-        algo = make_algorithm(env, cfg.algo, device=device)  # from here on, algo owns env
+    try:  # a resumed run meets fresh episodes: the seed moves with the frames
+        algo = make_algorithm(
+            partial(make_env, cfg.env, seed=cfg.seed + frames), cfg.algo, device=device
+        )
     except BaseException:
-        env.close()
         eval_env.close()
         raise
     try:

@@ -200,7 +200,7 @@ def test_rollout_result_travels_as_numpy_arrays():
 
 def test_algorithm_checkpoint_holds_normaliser_and_parameters():
     torch.manual_seed(0)
-    algo = ARS(make_env(CARTPOLE), ARSConfig(num_directions=4, num_best=2, workers=1))
+    algo = ARS(partial(make_env, CARTPOLE), ARSConfig(num_directions=4, num_best=2, workers=1))
     assert isinstance(algo, Algorithm)
     metrics = algo.train_step()
     assert algo.frames == metrics["train/env_steps"] > 0
@@ -209,7 +209,7 @@ def test_algorithm_checkpoint_holds_normaliser_and_parameters():
     torch.save(algo.state_dict(), buffer)
     buffer.seek(0)
     state = torch.load(buffer, weights_only=True)
-    other = ARS(make_env(CARTPOLE), ARSConfig(num_directions=4, num_best=2, workers=1))
+    other = ARS(partial(make_env, CARTPOLE), ARSConfig(num_directions=4, num_best=2, workers=1))
     td = make_env(CARTPOLE, num_envs=3).reset()
     other.load_state_dict(state)
     assert torch.equal(
@@ -232,7 +232,7 @@ def test_config_checks():
 
 def test_non_flat_observation_is_rejected(image_env_id):
     with pytest.raises(RlpipeError, match="flat vector observation"):
-        ARS(make_env(EnvConfig(id=image_env_id)), ARSConfig(workers=1))
+        ARS(partial(make_env, EnvConfig(id=image_env_id)), ARSConfig(workers=1))
 
 
 def test_cli_trains_ars(rlpipe_cli):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from functools import partial
 
 import pytest
 import torch
@@ -21,7 +22,7 @@ SMALL = dict(
 @pytest.fixture
 def dqn():
     torch.manual_seed(0)
-    algo = DQN(make_env(EnvConfig(num_envs=2), seed=0), DQNConfig(**SMALL))
+    algo = DQN(partial(make_env, EnvConfig(num_envs=2), seed=0), DQNConfig(**SMALL))
     yield algo
     algo.close()
 
@@ -92,7 +93,9 @@ def test_train_step_collects_updates_and_reports(dqn):
 
 
 def test_frames_per_batch_rounds_up_to_whole_env_steps():
-    algo = DQN(make_env(EnvConfig(num_envs=3)), DQNConfig(**{**SMALL, "frames_per_batch": 4}))
+    algo = DQN(
+        partial(make_env, EnvConfig(num_envs=3)), DQNConfig(**{**SMALL, "frames_per_batch": 4})
+    )
     algo.train_step()
     assert algo.frames == 6
     algo.close()
@@ -102,7 +105,7 @@ def test_state_dict_round_trip(dqn):
     for _ in range(5):
         dqn.train_step()
     state = dqn.state_dict()
-    other = DQN(make_env(EnvConfig(num_envs=2)), DQNConfig(**SMALL))
+    other = DQN(partial(make_env, EnvConfig(num_envs=2)), DQNConfig(**SMALL))
     other.load_state_dict(state)
     assert other.frames == dqn.frames
     td = make_env(EnvConfig(num_envs=4), seed=3).reset()
@@ -112,4 +115,4 @@ def test_state_dict_round_trip(dqn):
 
 def test_continuous_actions_are_refused():
     with pytest.raises(RlpipeError, match="discrete action space"):
-        DQN(make_env(EnvConfig(id="Pendulum-v1")), DQNConfig())
+        DQN(partial(make_env, EnvConfig(id="Pendulum-v1")), DQNConfig())

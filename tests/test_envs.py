@@ -8,7 +8,7 @@ import torch
 from torchrl.envs.utils import check_env_specs
 
 from rlpipe.config import EnvConfig
-from rlpipe.envs import env_config, is_discrete, make_env, num_actions, observation_size, sub_envs
+from rlpipe.envs import is_discrete, make_env, num_actions, observation_size, sub_envs
 from rlpipe.errors import RlpipeError
 
 
@@ -81,11 +81,10 @@ def test_non_flat_observation_is_rejected(image_env_id):
         ("CartPole-v1", "auto", None, False),  # its vector env cannot disable autoreset
     ],
 )
-def test_vectorization_choice_and_env_config(env_id, vectorization, render_mode, batched):
+def test_vectorization_choice(env_id, vectorization, render_mode, batched):
     cfg = EnvConfig(id=env_id, num_envs=2, max_episode_steps=9, kwargs={})
     env = make_env(cfg, render_mode=render_mode, vectorization=vectorization)
     assert isinstance(env.base_env._env, gym.vector.SyncVectorEnv) is not batched
-    assert env_config(env) == EnvConfig(id=env_id, max_episode_steps=9)
     if batched:
         with pytest.raises(RlpipeError, match="SyncVectorEnv"):
             sub_envs(env)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import json
+from functools import partial
 
 import gymnasium as gym
 import numpy as np
@@ -192,8 +193,8 @@ def test_unbounded_actions_are_a_clear_error():
         gym.register("rlpipe/TestUnbounded-v0", entry_point=UnboundedEnv)
     env = make_env(EnvConfig(id="rlpipe/TestUnbounded-v0"))
     with pytest.raises(RlpipeError, match="needs discrete actions or a bounded flat box"):
-        MBRL(env, MBRLConfig(**SMALL))
-    env.close()
+        MBRL(lambda: env, MBRLConfig(**SMALL))
+    assert env.is_closed  # the algorithm closes the env it was given when it cannot use it
 
 
 def greedy_actions(algo: MBRL, td):
@@ -203,7 +204,7 @@ def greedy_actions(algo: MBRL, td):
 
 def test_pendulum_steps_fit_and_resume_exactly():
     torch.manual_seed(0)
-    algo = MBRL(make_env(PENDULUM, num_envs=2, seed=0), MBRLConfig(**SMALL))
+    algo = MBRL(partial(make_env, PENDULUM, num_envs=2, seed=0), MBRLConfig(**SMALL))
     assert isinstance(algo, Algorithm)
     first = algo.train_step()  # warm-up batch (random actions), then the first fit
     assert algo.frames == 20 and len(algo.buffer) == 20
@@ -220,7 +221,7 @@ def test_pendulum_steps_fit_and_resume_exactly():
     buf.seek(0)
     state = torch.load(buf, weights_only=True)
     torch.manual_seed(123)
-    restored = MBRL(make_env(PENDULUM, num_envs=2, seed=0), MBRLConfig(**SMALL))
+    restored = MBRL(partial(make_env, PENDULUM, num_envs=2, seed=0), MBRLConfig(**SMALL))
     restored.load_state_dict(state)
     assert restored.frames == algo.frames and len(restored.buffer) == 40
     assert not restored.mpc.warmup
@@ -234,7 +235,7 @@ def test_pendulum_steps_fit_and_resume_exactly():
 def test_discrete_env_learns_termination():
     torch.manual_seed(0)
     cfg = MBRLConfig(**{**SMALL, "frames_per_batch": 64})
-    algo = MBRL(make_env(EnvConfig(id="CartPole-v1", num_envs=4), seed=0), cfg)
+    algo = MBRL(partial(make_env, EnvConfig(id="CartPole-v1", num_envs=4), seed=0), cfg)
     metrics = algo.train_step()  # random CartPole episodes end within 64 frames
     assert bool(algo.model.can_terminate)
     assert "train/val_termination_loss" in metrics or "train/model_loss" in metrics

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import inspect
 import json
+from functools import partial
 
 import gymnasium as gym
 import pytest
@@ -78,7 +79,7 @@ def test_categorical_policy_for_discrete_actions():
 def collected(baseline: str) -> tuple[Reinforce, TensorDict]:
     """A linear REINFORCE on the continuous CartPole and one epoch's weighed batch."""
     torch.manual_seed(0)
-    algo = Reinforce(make_env(CONTINUOUS, seed=0), ReinforceConfig(baseline=baseline))
+    algo = Reinforce(partial(make_env, CONTINUOUS, seed=0), ReinforceConfig(baseline=baseline))
     batch, _ = collect_episodes(algo.policy, algo.env, 8)
     algo.weigh(batch)
     return algo, batch
@@ -95,7 +96,9 @@ def test_no_baseline_is_the_notebooks_objective():
 
 
 def test_value_baseline_weights_are_td1_advantages():
-    algo = Reinforce(make_env(CONTINUOUS, seed=0), ReinforceConfig(baseline="value", gamma=0.5))
+    algo = Reinforce(
+        partial(make_env, CONTINUOUS, seed=0), ReinforceConfig(baseline="value", gamma=0.5)
+    )
     for layer in algo.value.modules():
         if isinstance(layer, torch.nn.Linear):
             torch.nn.init.zeros_(layer.weight)
@@ -146,7 +149,7 @@ def test_value_baseline_state_resumes_exactly(tmp_path):
     algo, _ = collected("value")
     algo.train_step()
     path = save_checkpoint(algo.state_dict(), tmp_path / "state.pt")
-    restored = Reinforce(make_env(CONTINUOUS, seed=0), ReinforceConfig(baseline="value"))
+    restored = Reinforce(partial(make_env, CONTINUOUS, seed=0), ReinforceConfig(baseline="value"))
     restored.load_state_dict(load_checkpoint(path))  # weights_only=True
     for mine, theirs in zip(algo.value.parameters(), restored.value.parameters(), strict=True):
         assert torch.equal(mine, theirs)
@@ -164,7 +167,8 @@ def test_unsupported_action_space_is_a_clear_error():
         gym.register("rlpipe/TestMultiDiscrete-v0", entry_point=MultiDiscreteEnv)
     env = make_env(EnvConfig(id="rlpipe/TestMultiDiscrete-v0"))
     with pytest.raises(RlpipeError, match="REINFORCE's policy needs discrete actions"):
-        Reinforce(env, ReinforceConfig())
+        Reinforce(lambda: env, ReinforceConfig())
+    assert env.is_closed
 
 
 class MultiDiscreteEnv(gym.Env):
@@ -203,14 +207,14 @@ def test_learns_discrete_cartpole_and_resumes_exactly(tmp_path):
     torch.manual_seed(0)
     cfg = ReinforceConfig(hidden_sizes=[32], episodes_per_epoch=16, updates_per_epoch=20, lr=1e-2)
     env_cfg = EnvConfig(id="CartPole-v1", num_envs=8)
-    algo = Reinforce(make_env(env_cfg, seed=0), cfg)
+    algo = Reinforce(partial(make_env, env_cfg, seed=0), cfg)
     eval_env = make_env(env_cfg, seed=1)
     before = evaluate(algo.policy, eval_env, 8).mean
     result = Runner(
         algo, eval_env, tmp_path, total_frames=8_000, eval_every=0, progress=False
     ).run()
     assert result.eval_mean > before + 50
-    restored = Reinforce(make_env(env_cfg, seed=0), cfg)
+    restored = Reinforce(partial(make_env, env_cfg, seed=0), cfg)
     restored.load_state_dict(algo.state_dict())
     assert restored.frames == algo.frames >= 8_000
     td = eval_env.reset()
@@ -235,7 +239,7 @@ BAD_INPUTS = [
     (["algo.episodes_per_epoch=0"], "algo.episodes_per_epoch must be >= 1, got 0"),
     (["algo.gamma=0"], "algo.gamma must be in (0, 1], got 0.0"),
     (["algo.gamma=1.5"], "algo.gamma must be in (0, 1], got 1.5"),
-    (["algo.baseline=critic"], "algo.baseline must be none or value, got 'critic'"),
+    (["algo.baseline=critic"], "algo.baseline must be one of none, value; got 'critic'"),
     (["env=gym", "env.id=multi_action:MultiAction-v0"], "REINFORCE's policy needs discrete"),
 ]
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from functools import partial
 
 import pytest
 import torch
@@ -37,7 +38,7 @@ def test_evaluate_counts_exact_episodes():
 def test_runner_logs_checkpoints_and_summarises(tmp_path):
     torch.manual_seed(0)
     algo = DQN(
-        make_env(EnvConfig(num_envs=2), seed=0),
+        partial(make_env, EnvConfig(num_envs=2), seed=0),
         DQNConfig(batch_size=8, buffer_size=64, learning_starts=8, frames_per_batch=10),
     )
     runner = Runner(

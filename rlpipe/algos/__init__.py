@@ -6,14 +6,14 @@ from collections.abc import Callable
 from typing import Any
 
 import torch
-from torchrl.envs import EnvBase
 
 from rlpipe.algos.ars import ARS, ARSConfig
 from rlpipe.algos.base import Algorithm, Metrics
 from rlpipe.algos.dqn import DQN, DQNConfig
 from rlpipe.algos.mbrl import MBRL, MBRLConfig
 from rlpipe.algos.reinforce import Reinforce, ReinforceConfig
-from rlpipe.errors import RlpipeError
+from rlpipe.envs import EnvFactory
+from rlpipe.errors import check_choice
 
 __all__ = [
     "ALGORITHMS",
@@ -30,7 +30,7 @@ __all__ = [
     "make_algorithm",
 ]
 
-# name -> (config dataclass, builder(env, cfg, device) -> Algorithm)
+# name -> (config dataclass, builder(env_factory, cfg, device=...) -> Algorithm)
 ALGORITHMS: dict[str, tuple[type, Callable[..., Algorithm]]] = {
     "dqn": (DQNConfig, DQN),
     "reinforce": (ReinforceConfig, Reinforce),
@@ -39,8 +39,9 @@ ALGORITHMS: dict[str, tuple[type, Callable[..., Algorithm]]] = {
 }
 
 
-def make_algorithm(env: EnvBase, cfg: Any, *, device: str | torch.device = "cpu") -> Algorithm:
-    """Build the algorithm named by ``cfg.name`` on ``env``."""
-    if cfg.name not in ALGORITHMS:
-        raise RlpipeError(f"unknown algorithm {cfg.name!r}; choose one of {', '.join(ALGORITHMS)}")
-    return ALGORITHMS[cfg.name][1](env, cfg, device=device)
+def make_algorithm(
+    env_factory: EnvFactory, cfg: Any, *, device: str | torch.device = "cpu"
+) -> Algorithm:
+    """Build the algorithm named by ``cfg.name`` on envs from ``env_factory``."""
+    check_choice(cfg.name, "algo.name", ALGORITHMS)
+    return ALGORITHMS[cfg.name][1](env_factory, cfg, device=device)

@@ -16,7 +16,8 @@ from torchrl.data import Bounded, Categorical
 from torchrl.envs import EnvBase
 
 from rlpipe.algos.base import Metrics
-from rlpipe.envs import env_config, is_discrete, make_env, num_actions, observation_size
+from rlpipe.config import AlgoConfig
+from rlpipe.envs import EnvFactory, is_discrete, num_actions, observation_size
 from rlpipe.errors import RlpipeError, check
 from rlpipe.evolution import BACKENDS, ARSSearch, Normalizer
 from rlpipe.models import mlp
@@ -33,10 +34,12 @@ class RayConfig:
 
 
 @dataclass
-class ARSConfig:
+class ARSConfig(AlgoConfig):
     """ARS hyper-parameters; the defaults are the workshop notebook's."""
 
     name: str = "ars"
+    eval_every: int = 1_000_000  # frames between greedy evaluations (an iteration is 2N episodes)
+    checkpoint_every: int = 1_000_000
     iterations: int = 1000  # the run's length, unless total_frames stops it first
     num_directions: int = 16  # N: directions sampled per iteration (2N rollouts)
     num_best: int = 16  # b: directions kept for the update, by max(r+, r-)
@@ -53,6 +56,7 @@ class ARSConfig:
     ray: RayConfig = field(default_factory=RayConfig)  # backend=ray only
 
     def __post_init__(self) -> None:
+        super().__post_init__()
         check(self.iterations >= 1, f"algo.iterations must be >= 1, got {self.iterations}")
         check(
             self.num_directions >= 1,
@@ -142,24 +146,35 @@ def make_ars_policy(env: EnvBase, cfg: ARSConfig) -> tuple[TensorDictSequential,
 
 
 class ARS:
-    """Augmented random search on a batched TorchRL env built by :func:`rlpipe.make_env`.
+    """Augmented random search on envs built by ``env_factory`` (a :data:`rlpipe.envs.EnvFactory`
+    over :func:`rlpipe.make_env`).
 
-    The env given is used for its specs and closed; the ``2N`` perturbed policies roll out on
-    copies of its gymnasium env spread over ``cfg.workers`` processes (``cfg.backend="ray"``:
-    Ray actors, see ``cfg.ray``). One :meth:`train_step`
-    is one ARS iteration; ``frames`` counts every step of every perturbed rollout. ARS runs on
-    the CPU whatever ``device`` says: its per-step work is one small batched matmul.
+    One env copy is built for the specs and closed; the ``2N`` perturbed policies roll out on
+    copies that ``env_factory(num_envs=n, seed=s, vectorization="sync")`` builds, spread over
+    ``cfg.workers`` processes (``cfg.backend="ray"``: Ray actors, see ``cfg.ray``). One
+    :meth:`train_step` is one ARS iteration; ``frames`` counts every step of every perturbed
+    rollout. ARS runs on the CPU whatever ``device`` says: its per-step work is one small
+    batched matmul, next to the env's physics.
     """
 
-    def __init__(self, env: EnvBase, cfg: ARSConfig, *, device: str | torch.device = "cpu"):
+    finite_keys = ()  # the runner checks the policy's parameters
+
+    def __init__(
+        self, env_factory: EnvFactory, cfg: ARSConfig, *, device: str | torch.device = "cpu"
+    ):
         self.cfg = cfg
+        self.device = torch.device("cpu")
         self.frames = 0
         self.budget = cfg.iterations
-        self.policy, normalizer = make_ars_policy(env, cfg)
+        probe = env_factory(num_envs=1, vectorization="sync")
+        try:
+            self.policy, normalizer = make_ars_policy(probe, cfg)
+        finally:
+            probe.close()
         seed = int(torch.randint(0, 2**31 - 1, ()))  # from the run's seeded torch generator
         self.search = ARSSearch(
             self.policy,
-            partial(make_env, env_config(env), vectorization="sync"),
+            partial(env_factory, vectorization="sync"),
             num_directions=cfg.num_directions,
             num_best=cfg.num_best,
             step_size=cfg.step_size,
@@ -174,7 +189,6 @@ class ARS:
             ray_num_cpus=cfg.ray.num_cpus,
             seed=seed,
         )
-        env.close()
 
     @property
     def iterations(self) -> int:

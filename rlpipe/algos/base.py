@@ -1,26 +1,42 @@
-"""The small interface every algorithm exposes to the shared runner."""
+"""The small interface every algorithm exposes to the shared runner, and what they share."""
 
 from __future__ import annotations
 
-from typing import Any, Protocol, runtime_checkable
+import math
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any, ClassVar, Protocol, runtime_checkable
 
+import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
+from torchrl.collectors import Collector
+from torchrl.envs import EnvBase
 
 # Scalars are averaged over the runner's logging window; lists hold one value per event
 # (e.g. one return per finished training episode) and are logged row by row.
 Metrics = dict[str, float | list[float]]
 
+# metric keys the runner reads
+EPISODE_RETURN = "train/episode_return"  # one value per finished training episode
+EPISODE_LENGTH = "train/episode_length"
+LOSS = "train/loss"
+
 
 @runtime_checkable
 class Algorithm(Protocol):
-    """What the runner needs: a greedy policy, a frame counter, one iteration, and state."""
+    """What the runner needs: a greedy policy, a frame counter, one iteration, and state.
+
+    Builders are called as ``Algo(env_factory, cfg, device=device)``: ``env_factory()`` builds
+    the training env (a :data:`rlpipe.envs.EnvFactory`), which the algorithm owns and closes.
+    """
 
     policy: TensorDictModuleBase  # deterministic/greedy policy used by evaluation and video
     frames: int  # environment frames consumed so far
     iterations: int  # train_step calls so far
     budget: int | None  # the algorithm's own budget in iterations (REINFORCE epochs, ARS
     # iterations); None: none, the run's total_frames decides
+    finite_keys: ClassVar[tuple[str, ...]]  # metrics that must stay finite (else: diverged)
 
     def train_step(self) -> Metrics:
         """Run one iteration (collect and update); advance ``frames``; return metrics."""
@@ -31,7 +47,7 @@ class Algorithm(Protocol):
     def load_state_dict(self, state: dict[str, Any]) -> None: ...
 
     def close(self) -> None:
-        """Release the env the algorithm was given and any workers or collectors it started."""
+        """Release the env the algorithm built and any workers or collectors it started."""
         ...
 
 
@@ -41,6 +57,32 @@ def episode_metrics(batch: TensorDictBase) -> Metrics:
     if not bool(done.any()):
         return {}
     return {
-        "train/episode_return": batch["next", "episode_reward"][done].tolist(),
-        "train/episode_length": batch["next", "step_count"][done].float().tolist(),
+        EPISODE_RETURN: batch["next", "episode_reward"][done].tolist(),
+        EPISODE_LENGTH: batch["next", "step_count"][done].float().tolist(),
     }
+
+
+@contextmanager
+def closing_on_error(env: EnvBase) -> Iterator[EnvBase]:
+    """Close ``env`` if building the algorithm around it fails (it owns the env after that)."""
+    try:
+        yield env
+    except BaseException:
+        env.close()
+        raise
+
+
+def make_collector(
+    env: EnvBase, policy: TensorDictModuleBase, frames_per_batch: int, device: torch.device
+) -> Collector:
+    """An endless TorchRL ``Collector`` of at least ``frames_per_batch`` frames per batch (rounded
+    up to whole steps of the env's copies), policy and storage on ``device``."""
+    num_envs = max(env.batch_size.numel(), 1)
+    return Collector(
+        env,
+        policy,
+        frames_per_batch=math.ceil(frames_per_batch / num_envs) * num_envs,
+        total_frames=-1,
+        policy_device=device,
+        storing_device=device,
+    )

@@ -9,23 +9,27 @@ from typing import Any
 
 import torch
 from tensordict.nn import TensorDictSequential
-from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.envs import EnvBase
 from torchrl.modules import EGreedyModule, QValueActor
 from torchrl.objectives import DQNLoss, SoftUpdate
 
-from rlpipe.algos.base import Metrics, episode_metrics
-from rlpipe.envs import is_discrete, observation_size
-from rlpipe.errors import RlpipeError, check
+from rlpipe.algos.base import LOSS, Metrics, closing_on_error, episode_metrics, make_collector
+from rlpipe.config import AlgoConfig
+from rlpipe.envs import EnvFactory, is_discrete, observation_size
+from rlpipe.errors import RlpipeError, check, check_choice, check_fields
 from rlpipe.models import mlp
+
+LOSSES = ("smooth_l1", "l2", "l1")
+EPS_SCHEDULES = ("exp", "linear")
 
 
 @dataclass
-class DQNConfig:
+class DQNConfig(AlgoConfig):
     """DQN hyper-parameters; the defaults are the workshop notebook's."""
 
     name: str = "dqn"
+    total_frames: int | None = 60_000  # DQN has no budget of its own: the run's length
     hidden_sizes: list[int] = field(default_factory=lambda: [128, 128])
     lr: float = 1e-4
     weight_decay: float = 1e-2  # AdamW's default
@@ -41,45 +45,31 @@ class DQNConfig:
     eps_end: float = 0.05
     eps_schedule: str = "exp"  # exp: eps_end + (eps_start - eps_end) * exp(-t / eps_decay)
     eps_decay: int = 1000  # frames: time constant (exp) or annealing length (linear)
-    frames_per_batch: int = 1  # env frames collected per iteration (across all envs)
-    updates_per_batch: int = 1  # gradient steps per iteration
+    frames_per_batch: int = 4  # env frames collected per iteration (across all envs) ...
+    updates_per_batch: int = 4  # ... then as many gradient steps: one per frame, as the notebook
     learning_starts: int = 128  # frames collected before the first update
 
     def __post_init__(self) -> None:
-        check(self.lr > 0, f"algo.lr must be > 0, got {self.lr}")
-        check(self.batch_size >= 1, f"algo.batch_size must be >= 1, got {self.batch_size}")
+        super().__post_init__()
+        check_fields(
+            self,
+            "algo.",
+            positive=("lr", "grad_clip_value"),
+            non_negative=("weight_decay", "updates_per_batch", "learning_starts"),
+            at_least_one=("batch_size", "eps_decay", "frames_per_batch"),
+            discount=("gamma", "tau"),
+            sizes=("hidden_sizes",),
+        )
         check(
             self.buffer_size >= self.batch_size,
             f"algo.buffer_size ({self.buffer_size}) must be >= algo.batch_size ({self.batch_size})",
         )
-        check(0 < self.gamma <= 1, f"algo.gamma must be in (0, 1], got {self.gamma}")
-        check(0 < self.tau <= 1, f"algo.tau must be in (0, 1], got {self.tau}")
-        check(
-            self.eps_schedule in ("exp", "linear"),
-            f"algo.eps_schedule must be 'exp' or 'linear', got {self.eps_schedule!r}",
-        )
+        check_choice(self.eps_schedule, "algo.eps_schedule", EPS_SCHEDULES)
         check(
             0 <= self.eps_end <= self.eps_start <= 1,
             f"need 0 <= algo.eps_end <= algo.eps_start <= 1, got {self.eps_end}, {self.eps_start}",
         )
-        check(self.eps_decay >= 1, f"algo.eps_decay must be >= 1, got {self.eps_decay}")
-        check(
-            self.loss in ("smooth_l1", "l2", "l1"),
-            f"algo.loss must be one of smooth_l1, l2, l1; got {self.loss!r}",
-        )
-        check(
-            self.frames_per_batch >= 1,
-            f"algo.frames_per_batch must be >= 1, got {self.frames_per_batch}",
-        )
-        check(
-            self.updates_per_batch >= 0,
-            f"algo.updates_per_batch must be >= 0, got {self.updates_per_batch}",
-        )
-        check(self.learning_starts >= 0, "algo.learning_starts must be >= 0")
-        check(
-            all(h >= 1 for h in self.hidden_sizes),
-            f"algo.hidden_sizes must be positive, got {self.hidden_sizes}",
-        )
+        check_choice(self.loss, "algo.loss", LOSSES)
 
 
 _STORED_KEYS = (
@@ -108,7 +98,15 @@ class DQN:
     followed by a soft target update.
     """
 
-    def __init__(self, env: EnvBase, cfg: DQNConfig, *, device: str | torch.device = "cpu"):
+    finite_keys = (LOSS,)
+
+    def __init__(
+        self, env_factory: EnvFactory, cfg: DQNConfig, *, device: str | torch.device = "cpu"
+    ):
+        with closing_on_error(env_factory()) as env:
+            self._build(env, cfg, torch.device(device))
+
+    def _build(self, env: EnvBase, cfg: DQNConfig, device: torch.device) -> None:
         if not is_discrete(env):
             raise RlpipeError(
                 f"DQN needs a discrete action space, but this env's actions are "
@@ -116,7 +114,7 @@ class DQN:
                 "(cartpole, mountaincar, lunarlander) or another algorithm"
             )
         self.cfg = cfg
-        self.device = torch.device(device)
+        self.device = device
         self.frames = self.iterations = 0
         self.budget = None  # frames only: the run's total_frames
         spec = env.action_spec_unbatched.to(self.device)
@@ -146,15 +144,8 @@ class DQN:
             storage=LazyTensorStorage(cfg.buffer_size, device=self.device),
             batch_size=cfg.batch_size,
         )
-        num_envs = max(env.batch_size.numel(), 1)
-        frames_per_batch = math.ceil(cfg.frames_per_batch / num_envs) * num_envs
-        self.collector = Collector(
-            env,
-            TensorDictSequential(self.policy, self.exploration),
-            frames_per_batch=frames_per_batch,
-            total_frames=-1,
-            policy_device=self.device,
-            storing_device=self.device,
+        self.collector = make_collector(
+            env, TensorDictSequential(self.policy, self.exploration), cfg.frames_per_batch, device
         )
         self._batches = iter(self.collector)
         # On one device the collector steps this very policy; otherwise it holds a copy.
@@ -180,7 +171,7 @@ class DQN:
             self.target_updater.step()
             losses.append(loss.detach())
         if losses:
-            metrics["train/loss"] = float(torch.stack(losses).mean())
+            metrics[LOSS] = float(torch.stack(losses).mean())
         if self._copy_weights:
             self.collector.update_policy_weights_()
         return metrics

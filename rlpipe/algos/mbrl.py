@@ -3,7 +3,6 @@ models, plan on them (PETS-style, deterministic ensemble). See :mod:`rlpipe.plan
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -11,25 +10,29 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
 from torch import nn
-from torchrl.collectors import Collector
 from torchrl.data import Bounded, LazyTensorStorage, ReplayBuffer
 from torchrl.envs import EnvBase, ExplorationType
 from torchrl.envs.utils import exploration_type
 
-from rlpipe.algos.base import Metrics, episode_metrics
-from rlpipe.envs import is_discrete, num_actions, observation_size
-from rlpipe.errors import RlpipeError, check
+from rlpipe.algos.base import Metrics, closing_on_error, episode_metrics, make_collector
+from rlpipe.config import AlgoConfig
+from rlpipe.envs import EnvFactory, is_discrete, num_actions, observation_size
+from rlpipe.errors import RlpipeError, check, check_choice, check_fields
 from rlpipe.planning import ActionCoder, Planner, WorldModel
 
 PLANNERS = ("cem", "random")
+MODEL_LOSS = "train/model_loss"  # the models' mean training loss over a fit
 _EVAL_SEED = 0  # the greedy policy's sampling noise: the same for every call
 
 
 @dataclass
-class MBRLConfig:
+class MBRLConfig(AlgoConfig):
     """Model-based RL hyper-parameters; the defaults are a PETS-like recipe for Pendulum-v1."""
 
     name: str = "mbrl"
+    total_frames: int | None = 15_000  # MBRL has no budget of its own: the run's length
+    eval_every: int = 2_000  # every greedy eval step plans (eval_episodes x episode length)
+    checkpoint_every: int = 5_000
     # models
     ensemble_size: int = 5  # dynamics MLPs, each fitted on its own minibatches
     hidden_sizes: list[int] = field(default_factory=lambda: [64, 64])
@@ -52,45 +55,32 @@ class MBRLConfig:
     init_std: float = 0.5  # CEM's first std, in units of half the action range
 
     def __post_init__(self) -> None:
-        check(self.ensemble_size >= 1, f"algo.ensemble_size must be >= 1, got {self.ensemble_size}")
-        check(self.horizon >= 1, f"algo.horizon must be >= 1, got {self.horizon}")
-        check(
-            self.num_candidates >= 1,
-            f"algo.num_candidates must be >= 1, got {self.num_candidates}",
-        )
-        check(
-            self.cem_iterations >= 1,
-            f"algo.cem_iterations must be >= 1, got {self.cem_iterations}",
+        super().__post_init__()
+        check_fields(
+            self,
+            "algo.",
+            positive=("lr", "init_std"),
+            non_negative=("weight_decay", "warmup_frames"),
+            at_least_one=(
+                "ensemble_size",
+                "horizon",
+                "num_candidates",
+                "cem_iterations",
+                "batch_size",
+                "fit_steps",
+                "buffer_size",
+                "frames_per_batch",
+            ),
+            discount=("gamma",),
+            fraction=("validation_fraction",),
+            sizes=("hidden_sizes",),
         )
         check(
             1 <= self.elites <= self.num_candidates,
             f"algo.elites must be in [1, algo.num_candidates={self.num_candidates}], "
             f"got {self.elites}",
         )
-        check(
-            self.planner in PLANNERS,
-            f"algo.planner must be one of {', '.join(PLANNERS)}; got {self.planner!r}",
-        )
-        check(0 < self.gamma <= 1, f"algo.gamma must be in (0, 1], got {self.gamma}")
-        check(self.init_std > 0, f"algo.init_std must be > 0, got {self.init_std}")
-        check(self.lr > 0, f"algo.lr must be > 0, got {self.lr}")
-        check(self.weight_decay >= 0, f"algo.weight_decay must be >= 0, got {self.weight_decay}")
-        check(self.batch_size >= 1, f"algo.batch_size must be >= 1, got {self.batch_size}")
-        check(self.fit_steps >= 1, f"algo.fit_steps must be >= 1, got {self.fit_steps}")
-        check(
-            0 <= self.validation_fraction < 1,
-            f"algo.validation_fraction must be in [0, 1), got {self.validation_fraction}",
-        )
-        check(self.buffer_size >= 1, f"algo.buffer_size must be >= 1, got {self.buffer_size}")
-        check(self.warmup_frames >= 0, f"algo.warmup_frames must be >= 0, got {self.warmup_frames}")
-        check(
-            self.frames_per_batch >= 1,
-            f"algo.frames_per_batch must be >= 1, got {self.frames_per_batch}",
-        )
-        check(
-            all(h >= 1 for h in self.hidden_sizes),
-            f"algo.hidden_sizes must be positive, got {self.hidden_sizes}",
-        )
+        check_choice(self.planner, "algo.planner", PLANNERS)
 
 
 def action_coder(env: EnvBase, device: torch.device) -> ActionCoder:
@@ -165,9 +155,17 @@ class MBRL:
     ``cem_iterations × horizon`` batched model steps over (eval envs × candidates × members) rows.
     """
 
-    def __init__(self, env: EnvBase, cfg: MBRLConfig, *, device: str | torch.device = "cpu"):
+    finite_keys = (MODEL_LOSS,)
+
+    def __init__(
+        self, env_factory: EnvFactory, cfg: MBRLConfig, *, device: str | torch.device = "cpu"
+    ):
+        with closing_on_error(env_factory()) as env:
+            self._build(env, cfg, torch.device(device))
+
+    def _build(self, env: EnvBase, cfg: MBRLConfig, device: torch.device) -> None:
         self.cfg = cfg
-        self.device = torch.device(device)
+        self.device = device
         self.frames = self.iterations = 0
         self.budget = None  # frames only: the run's total_frames
         coder = action_coder(env, self.device)
@@ -198,15 +196,7 @@ class MBRL:
             storage=LazyTensorStorage(cfg.buffer_size, device=self.device),
             batch_size=cfg.batch_size,
         )
-        num_envs = max(env.batch_size.numel(), 1)
-        self.collector = Collector(
-            env,
-            self.policy,
-            frames_per_batch=math.ceil(cfg.frames_per_batch / num_envs) * num_envs,
-            total_frames=-1,
-            policy_device=self.device,
-            storing_device=self.device,
-        )
+        self.collector = make_collector(env, self.policy, cfg.frames_per_batch, device)
         self._batches = iter(self.collector)
 
     def train_step(self) -> Metrics:
@@ -249,7 +239,7 @@ class MBRL:
             loss.backward()
             self.optimizer.step()
             totals.append(loss.detach())
-        metrics: Metrics = {"train/model_loss": float(torch.stack(totals).mean())}
+        metrics: Metrics = {MODEL_LOSS: float(torch.stack(totals).mean())}
         if len(valid):
             with torch.no_grad():
                 valid = valid.unsqueeze(0).expand(members, len(valid))

@@ -23,20 +23,26 @@ from torchrl.modules import IndependentNormal, ProbabilisticActor
 from torchrl.objectives.value import TD1Estimator
 from torchrl.objectives.value.functional import reward2go
 
-from rlpipe.algos.base import Metrics, episode_metrics
-from rlpipe.envs import is_discrete, num_actions, observation_size
-from rlpipe.errors import RlpipeError, check
+from rlpipe.algos.base import LOSS, Metrics, closing_on_error, episode_metrics
+from rlpipe.config import AlgoConfig
+from rlpipe.envs import EnvFactory, is_discrete, num_actions, observation_size
+from rlpipe.errors import RlpipeError, check_choice, check_fields
 from rlpipe.models import mlp
 
 add_custom_mapping("sigmoid", torch.sigmoid)  # the notebook's std in (0, 1)
 _EPS = torch.finfo(torch.float32).eps
 
 
+BASELINES = ("none", "value")
+
+
 @dataclass
-class ReinforceConfig:
+class ReinforceConfig(AlgoConfig):
     """REINFORCE hyper-parameters; the defaults are the REINFORCE/ARS notebook's."""
 
     name: str = "reinforce"
+    eval_every: int = 5_000  # about one evaluation per epoch on the continuous CartPole
+    eval_episodes: int = 20  # the notebook's test episodes
     epochs: int = 20  # the run's length, unless total_frames stops it first
     hidden_sizes: list[int] = field(default_factory=list)  # []: a linear policy
     episodes_per_epoch: int = 100  # whole episodes collected per train_step
@@ -50,27 +56,17 @@ class ReinforceConfig:
     value_lr: float = 1e-2  # V(s)'s Adam learning rate (same weight decay)
 
     def __post_init__(self) -> None:
-        check(self.epochs >= 1, f"algo.epochs must be >= 1, got {self.epochs}")
-        check(
-            self.episodes_per_epoch >= 1,
-            f"algo.episodes_per_epoch must be >= 1, got {self.episodes_per_epoch}",
+        super().__post_init__()
+        check_fields(
+            self,
+            "algo.",
+            positive=("lr", "value_lr"),
+            non_negative=("weight_decay",),
+            at_least_one=("epochs", "episodes_per_epoch", "updates_per_epoch", "batch_size"),
+            discount=("gamma",),
+            sizes=("hidden_sizes", "value_hidden_sizes"),
         )
-        check(
-            self.updates_per_epoch >= 1,
-            f"algo.updates_per_epoch must be >= 1, got {self.updates_per_epoch}",
-        )
-        check(self.batch_size >= 1, f"algo.batch_size must be >= 1, got {self.batch_size}")
-        check(0 < self.gamma <= 1, f"algo.gamma must be in (0, 1], got {self.gamma}")
-        check(self.lr > 0, f"algo.lr must be > 0, got {self.lr}")
-        check(self.weight_decay >= 0, f"algo.weight_decay must be >= 0, got {self.weight_decay}")
-        for key in ("hidden_sizes", "value_hidden_sizes"):
-            sizes = getattr(self, key)
-            check(all(h >= 1 for h in sizes), f"algo.{key} must be positive, got {sizes}")
-        check(self.value_lr > 0, f"algo.value_lr must be > 0, got {self.value_lr}")
-        check(
-            self.baseline in ("none", "value"),
-            f"algo.baseline must be none or value, got {self.baseline!r}",
-        )
+        check_choice(self.baseline, "algo.baseline", BASELINES)
 
 
 class Clip(nn.Module):
@@ -203,9 +199,17 @@ class Reinforce:
     (plus, with the baseline, ``V``'s squared error to the epoch's TD(1) targets).
     """
 
-    def __init__(self, env: EnvBase, cfg: ReinforceConfig, *, device: str | torch.device = "cpu"):
+    finite_keys = (LOSS,)
+
+    def __init__(
+        self, env_factory: EnvFactory, cfg: ReinforceConfig, *, device: str | torch.device = "cpu"
+    ):
+        with closing_on_error(env_factory()) as env:
+            self._build(env, cfg, torch.device(device))
+
+    def _build(self, env: EnvBase, cfg: ReinforceConfig, device: torch.device) -> None:
         self.cfg = cfg
-        self.device = torch.device(device)
+        self.device = device
         self.frames = self.iterations = 0
         self.budget = cfg.epochs
         self.policy, self._sample_key = make_policy(env, cfg.hidden_sizes)
@@ -260,7 +264,7 @@ class Reinforce:
             loss.backward()
             self.optimizer.step()
             losses.append(loss.detach())
-        metrics: Metrics = {"train/loss": float(torch.stack(losses).mean())}
+        metrics: Metrics = {LOSS: float(torch.stack(losses).mean())}
         metrics.update(episode_metrics(batch))
         return metrics
 

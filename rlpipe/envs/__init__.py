@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import gymnasium as gym
 from gymnasium.envs.registration import load_env_creator
 from gymnasium.vector import AutoresetMode
@@ -21,10 +23,13 @@ from rlpipe.config import EnvConfig
 from rlpipe.envs import cartpole  # noqa: F401  (registers rlpipe/CartPole*-v0 with gymnasium)
 from rlpipe.errors import RlpipeError
 
-__all__ = ["make_env", "observation_size", "is_discrete", "num_actions", "sub_envs", "env_config"]
+__all__ = ["EnvFactory", "make_env", "observation_size", "is_discrete", "num_actions", "sub_envs"]
 
-# make_vec's and make_env's arguments that a vector env's spec records among the env's kwargs
-_NOT_ENV_KWARGS = ("num_envs", "vectorization_mode", "vector_kwargs", "wrappers", "render_mode")
+# What algorithms are built from: ``env_factory(**overrides) -> EnvBase``, e.g.
+# ``functools.partial(rlpipe.make_env, EnvConfig(id="CartPole-v1"), seed=0)``. Called with no
+# arguments for the training env; ARS also passes ``num_envs=``, ``seed=`` and
+# ``vectorization="sync"`` (its rollouts step the gymnasium copies of a make_env env).
+EnvFactory = Callable[..., EnvBase]
 
 
 def make_env(
@@ -137,11 +142,3 @@ def sub_envs(env: EnvBase) -> list[gym.Env]:
             f"vectorization='sync'), got {venv!r}"
         )
     return list(venv.envs)
-
-
-def env_config(env: EnvBase) -> EnvConfig:
-    """An :class:`EnvConfig` that builds more copies of the gymnasium env inside ``env``."""
-    spec = _vector_env(env).spec  # gym.make_vec's: the id's spec, with the make_vec arguments
-    kwargs = {k: v for k, v in spec.kwargs.items() if k not in _NOT_ENV_KWARGS}
-    steps = kwargs.pop("max_episode_steps", spec.max_episode_steps)
-    return EnvConfig(id=spec.id, max_episode_steps=steps, kwargs=kwargs)
