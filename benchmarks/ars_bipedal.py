@@ -17,7 +17,7 @@ from pathlib import Path
 
 from common import compose_config, machine, parser, publish, read_scalar, table
 
-from rlpipe.train import train
+from rlpipe.pipeline import train
 
 TARGET = 300.0
 

@@ -19,8 +19,8 @@ from rlpipe.algos import make_algorithm
 from rlpipe.cli import register_configs, to_config
 from rlpipe.config import Config
 from rlpipe.envs import make_env
-from rlpipe.evaluation import evaluate
-from rlpipe.train import seed_everything
+from rlpipe.episodes import evaluate
+from rlpipe.runtime import seed_everything
 
 
 def parser(description: str) -> argparse.ArgumentParser:
@@ -148,6 +148,7 @@ def time_ars(seed: int, iterations: int, *overrides: str) -> dict:
     seed_everything(seed)
     start = time.perf_counter()
     algo = make_algorithm(partial(make_env, cfg.env, seed=seed), cfg.algo)
+    algo.search.start()  # workers (processes, Ray actors) start here, not in the first iteration
     startup = time.perf_counter() - start
     try:
         start, cpu = time.perf_counter(), 0.0

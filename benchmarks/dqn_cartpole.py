@@ -20,7 +20,7 @@ import gymnasium as gym
 import numpy as np
 from common import budget_parser, compose_config, machine, publish, read_scalar, table
 
-from rlpipe.train import train
+from rlpipe.pipeline import train
 
 TARGET = 500.0
 RL_ZOO_CARTPOLE = dict(  # rl-baselines3-zoo hyperparams/dqn.yml, CartPole-v1

@@ -13,15 +13,20 @@ from rlpipe.algos import (
     ReinforceConfig,
     make_algorithm,
 )
+from rlpipe.algos.ars import ARSSearch
+from rlpipe.callbacks import Callback
 from rlpipe.config import Config, EnvConfig, LoggerConfig
-from rlpipe.curves import find_runs, group_runs, plot_groups, plot_run
 from rlpipe.envs import make_env
+from rlpipe.episodes import EvalResult, evaluate
 from rlpipe.errors import RlpipeError
-from rlpipe.evaluation import EvalResult, evaluate
-from rlpipe.evolution import ARSSearch, Normalizer
+from rlpipe.figures import plot_groups, plot_run
+from rlpipe.loggers import make_logger
+from rlpipe.metrics import find_runs, group_runs
+from rlpipe.normalizer import Normalizer
+from rlpipe.pipeline import train
 from rlpipe.rundir import LoadedRun, load_run
 from rlpipe.runner import Runner, RunResult
-from rlpipe.train import make_logger, seed_everything, train
+from rlpipe.runtime import seed_everything
 
 __version__ = "0.1.0"
 
@@ -32,6 +37,7 @@ __all__ = [
     "ARSSearch",
     "DQN",
     "Algorithm",
+    "Callback",
     "Config",
     "DQNConfig",
     "EnvConfig",

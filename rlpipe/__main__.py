@@ -11,9 +11,9 @@ from hydra.types import RunMode
 from omegaconf import DictConfig
 
 from rlpipe.cli import USER_ERRORS, fail, register_configs, run_cli, to_config
+from rlpipe.pipeline import train
 from rlpipe.runner import RunResult
 from rlpipe.sweep import SweepSummary, run_sweep_job
-from rlpipe.train import train
 
 register_configs()
 

@@ -1,13 +1,17 @@
-"""Hydra glue for the command line: config registration and one-line error reporting."""
+"""Hydra glue for the command line: config registration and composition, the entry points'
+shared opening, and one-line error reporting."""
 
 from __future__ import annotations
 
 import dataclasses
+import logging
 import os
+import re
 import sys
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any, NoReturn
 
+from hydra import compose, initialize_config_module
 from hydra.core.config_store import ConfigStore
 from hydra.errors import HydraException, MissingConfigException
 from omegaconf import MISSING, DictConfig, OmegaConf
@@ -15,7 +19,7 @@ from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
 
 from rlpipe.algos import ALGORITHMS
 from rlpipe.config import Config, EnvConfig
-from rlpipe.errors import RlpipeError
+from rlpipe.errors import RlpipeError, check
 from rlpipe.runner import Interrupted
 
 USER_ERRORS = (RlpipeError, HydraException, OmegaConfBaseException)
@@ -56,6 +60,43 @@ def to_config(cfg: DictConfig) -> Config:
     if unknown:
         raise RlpipeError(f"unknown config key {unknown[0]!r}; see `python -m rlpipe --cfg job`")
     return OmegaConf.to_object(cfg)
+
+
+def compose_config(name: str, overrides: Sequence[str]) -> Any:
+    """Compose ``conf/<name>.yaml`` with ``key=value`` overrides into its dataclass object.
+
+    For the small commands (``rlpipe.evaluate``, ``rlpipe.play``): Hydra's composition without
+    ``@hydra.main``'s run directory and logging.
+    """
+    for arg in overrides:
+        check(
+            re.match(r"^[+~]{0,2}[\w.]+=", arg) is not None,
+            f"expected key=value arguments, got {arg!r}; see python -m rlpipe.{name} --help",
+        )
+    with initialize_config_module("rlpipe.conf", version_base="1.3"):
+        cfg = compose(name, overrides=list(overrides))
+    unknown = list(unknown_keys(cfg))
+    if unknown:
+        raise RlpipeError(f"unknown key {unknown[0]!r}; see python -m rlpipe.{name} --help")
+    if "env" in cfg and OmegaConf.is_missing(cfg.env, "id"):
+        cfg.env = None  # no env option chosen
+    return OmegaConf.to_object(cfg)
+
+
+def run_entry_point(
+    doc: str, argv: Sequence[str] | None, body: Callable[[list[str]], None]
+) -> None:
+    """The opening of ``python -m rlpipe.<command>``: ``-h``/``--help`` prints ``doc``, else
+    ``body(args)`` runs with TorchRL's logger quiet; its user errors print one line, exit 2."""
+    args = sys.argv[1:] if argv is None else list(argv)
+    if {"-h", "--help"} & set(args):
+        print(doc.strip())
+        return
+    logging.getLogger("torchrl").setLevel(logging.WARNING)  # the console is the command's output
+    try:
+        body(args)
+    except USER_ERRORS as err:
+        fail(err)
 
 
 def format_error(err: BaseException) -> str:

@@ -8,10 +8,34 @@ or a value of the wrong type fails at start-up naming the key, and value checks 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from collections.abc import Iterable
+from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
-from rlpipe.errors import check, check_choice, check_fields
+from rlpipe.errors import RULES, check, check_choice
+
+
+def checked(default: Any, rule: str | None = None, *, choices: Iterable[Any] = ()) -> Any:
+    """A dataclass field with its default and its value rule: one of :data:`rlpipe.errors.RULES`
+    (e.g. ``lr: float = checked(1e-4, "positive")``) or a set of ``choices``; see
+    :func:`check_rules`. A list default becomes a default factory."""
+    assert rule in RULES or (rule is None and choices), rule
+    meta = {"rule": rule, "choices": tuple(choices)}
+    if isinstance(default, list):
+        return field(default_factory=lambda: list(default), metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+def check_rules(cfg: object, prefix: str) -> None:
+    """Check every :func:`checked` field of the dataclass ``cfg``; errors name the key as
+    ``<prefix><field>``."""
+    for f in fields(cfg):
+        value = getattr(cfg, f.name)
+        if f.metadata.get("choices"):
+            check_choice(value, prefix + f.name, f.metadata["choices"])
+        elif f.metadata.get("rule"):
+            test, requirement = RULES[f.metadata["rule"]]
+            check(test(value), f"{prefix}{f.name} {requirement}, got {value}")
 
 
 @dataclass
@@ -19,17 +43,12 @@ class EnvConfig:
     """Which gymnasium environment to build and how many copies to step as one batch."""
 
     id: str = "CartPole-v1"
-    num_envs: int = 1
-    max_episode_steps: int | None = None  # None: the environment's own time limit
+    num_envs: int = checked(1, "at_least_one")
+    max_episode_steps: int | None = checked(None, "optional_at_least_one")  # None: the env's own
     kwargs: dict[str, Any] = field(default_factory=dict)  # passed to gymnasium.make
 
     def __post_init__(self) -> None:
-        check_fields(
-            self,
-            "env.",
-            at_least_one=("num_envs",),
-            optional_at_least_one=("max_episode_steps",),
-        )
+        check_rules(self, "env.")
 
 
 LOGGER_BACKENDS = ("csv", "tensorboard", "wandb", "mlflow", "none")
@@ -41,14 +60,14 @@ class LoggerConfig:
     """Where metrics go: ``csv`` (TorchRL's CSVLogger in the run directory), ``tensorboard``,
     ``wandb`` or ``mlflow`` (each on top of the CSV files), or ``none``."""
 
-    backend: str = "csv"
+    backend: str = checked("csv", choices=LOGGER_BACKENDS)
     project: str | None = None  # W&B project / MLflow experiment (default "rlpipe")
-    mode: str | None = None  # W&B mode; null: offline unless a project is set
+    mode: str | None = checked(None, choices=(*WANDB_MODES, None))  # W&B; null: offline unless
+    # a project is set
     tracking_uri: str | None = None  # MLflow; null: sqlite:///<run dir>/mlflow.db
 
     def __post_init__(self) -> None:
-        check_choice(self.backend, "logger.backend", LOGGER_BACKENDS)
-        check_choice(self.mode, "logger.mode", (*WANDB_MODES, None))
+        check_rules(self, "logger.")
 
 
 # the run's length and cadence: top-level keys of Config that default to the algorithm's own
@@ -68,6 +87,7 @@ class AlgoConfig:
 
     def __post_init__(self) -> None:
         check_run_keys(self, "algo.")
+        check_rules(self, "algo.")
 
 
 def check_run_keys(cfg: Config | AlgoConfig, prefix: str) -> None:
@@ -101,15 +121,15 @@ class Config:
     eval_every: int | None = None  # null: algo.eval_every
     eval_episodes: int | None = None  # null: algo.eval_episodes
     checkpoint_every: int | None = None  # null: algo.checkpoint_every
-    keep_checkpoints: int = 3
+    keep_checkpoints: int = checked(3, "at_least_one")
     progress: bool = True
     video: Any = False  # false | true (every evaluation) | N (every N frames); always at the end
-    threads: int = 0  # torch intra-op threads; 0: torch's default (one per core)
+    threads: int = checked(0, "non_negative")  # torch intra-op threads; 0: torch's default
     resume: str | None = None  # a run dir to continue from its last good checkpoint
 
     def __post_init__(self) -> None:
         check_run_keys(self, "")
-        check_fields(self, "", non_negative=("threads",), at_least_one=("keep_checkpoints",))
+        check_rules(self, "")
         check(
             isinstance(self.video, bool) or (isinstance(self.video, int) and self.video >= 0),
             f"video must be true, false or a frame cadence N >= 1, got {self.video!r}",

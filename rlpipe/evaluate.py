@@ -11,29 +11,29 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import logging
 import re
 import sys
 from collections.abc import Sequence
 from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import ModuleType
 from typing import Any
 
-from hydra import compose, initialize_config_module
 from hydra.core.config_store import ConfigStore
-from omegaconf import MISSING, OmegaConf
+from omegaconf import MISSING
 from tensordict.nn import TensorDictModuleBase
+from torchrl.envs import EnvBase
 
-from rlpipe.cli import USER_ERRORS, fail, unknown_keys
+from rlpipe.cli import compose_config, run_entry_point
 from rlpipe.config import EnvConfig
 from rlpipe.envs import make_env
-from rlpipe.errors import RlpipeError, check
-from rlpipe.evaluation import evaluate
+from rlpipe.episodes import EvalResult, eval_envs, evaluate
+from rlpipe.errors import check
 from rlpipe.heuristic import heuristic_policy, random_policy
 from rlpipe.loggers import require_extra
 from rlpipe.rundir import load_config, load_run
-from rlpipe.train import MAX_EVAL_ENVS, resolve_device, seed_everything
+from rlpipe.runtime import resolve_device, seed_everything
 from rlpipe.video import frame_rate, make_render_env, record_episode, write_mp4
 
 POLICIES = ("trained", "random", "heuristic")
@@ -74,23 +74,6 @@ class EvaluateConfig:
         )
 
 
-def compose_config(name: str, overrides: Sequence[str]) -> Any:
-    """Compose ``conf/<name>.yaml`` with ``key=value`` overrides into its dataclass object."""
-    for arg in overrides:
-        check(
-            re.match(r"^[+~]{0,2}[\w.]+=", arg) is not None,
-            f"expected key=value arguments, got {arg!r}; see python -m rlpipe.{name} --help",
-        )
-    with initialize_config_module("rlpipe.conf", version_base="1.3"):
-        cfg = compose(name, overrides=list(overrides))
-    unknown = list(unknown_keys(cfg))
-    if unknown:
-        raise RlpipeError(f"unknown key {unknown[0]!r}; see python -m rlpipe.{name} --help")
-    if "env" in cfg and OmegaConf.is_missing(cfg.env, "id"):
-        cfg.env = None  # no env option chosen
-    return OmegaConf.to_object(cfg)
-
-
 def _policy(cfg: EvaluateConfig, stack: ExitStack) -> tuple[TensorDictModuleBase, EnvConfig, str]:
     """The policy to evaluate, its env config and a name for the outputs."""
     if cfg.policy == "trained":
@@ -123,7 +106,7 @@ def run(cfg: EvaluateConfig) -> dict[str, Any]:
         render_env = make_render_env(env_cfg, seed=cfg.seed) if cfg.video else None
         if render_env is not None:
             stack.callback(render_env.close)
-        env = make_env(env_cfg, num_envs=min(cfg.episodes, MAX_EVAL_ENVS), seed=cfg.seed)
+        env = make_env(env_cfg, num_envs=eval_envs(cfg.episodes), seed=cfg.seed)
         stack.callback(env.close)
         result = evaluate(policy, env, cfg.episodes)
         path = _out_path(cfg, env_cfg, name)
@@ -164,15 +147,12 @@ def summary_line(summary: dict[str, Any]) -> str:
 
 def main(argv: Sequence[str] | None = None) -> None:
     """``python -m rlpipe.evaluate key=value ...``; user errors: one line, exit 2."""
-    args = sys.argv[1:] if argv is None else list(argv)
-    if {"-h", "--help"} & set(args):
-        print(__doc__.strip() + "\n\nkeys (conf/evaluate.yaml): " + ", ".join(_keys()))
-        return
-    logging.getLogger("torchrl").setLevel(logging.WARNING)
-    try:
-        summary = run(compose_config("evaluate", args))
-    except USER_ERRORS as err:
-        fail(err)
+    doc = __doc__.strip() + "\n\nkeys (conf/evaluate.yaml): " + ", ".join(_keys())
+    run_entry_point(doc, argv, _evaluate)
+
+
+def _evaluate(args: list[str]) -> None:
+    summary = run(compose_config("evaluate", args))
     print(f"rlpipe: {summary_line(summary)}")
 
 
@@ -181,6 +161,24 @@ def _keys() -> list[str]:
 
 
 ConfigStore.instance().store(name="evaluate_schema", node=EvaluateConfig)
+
+
+class _CallableModule(ModuleType):
+    """This module, also callable as the evaluation function :func:`rlpipe.episodes.evaluate`.
+
+    Why: ``rlpipe/__init__.py`` exports that function as ``rlpipe.evaluate``, and importing this
+    command's module (``from rlpipe.evaluate import main``) makes Python rebind the package
+    attribute ``rlpipe.evaluate`` to the module. Calls pass through, so ``rlpipe.evaluate(policy,
+    env, episodes)`` works either way, and ``rlpipe.evaluate.main`` too.
+    """
+
+    __wrapped__ = staticmethod(evaluate)  # what a call runs (inspect.signature follows it)
+
+    def __call__(self, policy: TensorDictModuleBase, env: EnvBase, episodes: int) -> EvalResult:
+        return evaluate(policy, env, episodes)
+
+
+sys.modules[__name__].__class__ = _CallableModule
 
 if __name__ == "__main__":
     main()

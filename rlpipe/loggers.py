@@ -23,7 +23,6 @@ from torchrl.record.loggers import (
 
 from rlpipe.config import LoggerConfig
 from rlpipe.errors import RlpipeError
-from rlpipe.runner import Callback, Runner, RunResult
 
 METRICS_DIR = "metrics"  # CSVLogger's experiment name: <run dir>/metrics/scalars/<name>.csv
 
@@ -127,11 +126,3 @@ def _backend(cfg: LoggerConfig, run_dir: Path) -> Logger:
     return MLFlowLogger(
         exp_name=cfg.project or "rlpipe", tracking_uri=uri, artifact_location=artifacts
     )
-
-
-class CloseLogger(Callback):
-    """Flushes and closes the runner's logger when the run ends (W&B/MLflow runs finish)."""
-
-    def on_end(self, runner: Runner, result: RunResult) -> None:
-        if runner.logger is not None:
-            runner.logger.shutdown()

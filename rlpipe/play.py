@@ -18,10 +18,9 @@ import gymnasium as gym
 import numpy as np
 from hydra.core.config_store import ConfigStore
 
-from rlpipe.cli import USER_ERRORS, fail
+from rlpipe.cli import compose_config, run_entry_point
 from rlpipe.config import EnvConfig
 from rlpipe.errors import RlpipeError, check
-from rlpipe.evaluate import compose_config
 
 
 @dataclass(frozen=True)
@@ -175,14 +174,11 @@ def _draw(screen: Any, font: Any, frame: np.ndarray, text: str) -> None:
 
 def main(argv: Sequence[str] | None = None) -> None:
     """``python -m rlpipe.play key=value ...``; user errors: one line, exit 2."""
-    args = sys.argv[1:] if argv is None else list(argv)
-    if {"-h", "--help"} & set(args):
-        print(__doc__.strip())
-        return
-    try:
-        result = play(compose_config("play", args))
-    except USER_ERRORS as err:
-        fail(err)
+    run_entry_point(__doc__, argv, _play)
+
+
+def _play(args: list[str]) -> None:
+    result = play(compose_config("play", args))
     if result.returns:
         mean = sum(result.returns) / len(result.returns)
         print(f"rlpipe: played {len(result.returns)} episode(s), mean return {mean:.1f}")

@@ -8,13 +8,13 @@ them apart. Prints the path of the PNG (and SVG with ``svg=true``).
 
 from __future__ import annotations
 
-import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from rlpipe.cli import fail
-from rlpipe.curves import AGGREGATES, EVAL_METRIC, find_runs, group_runs, plot_groups
-from rlpipe.errors import RlpipeError, check
+from rlpipe.cli import run_entry_point
+from rlpipe.errors import check
+from rlpipe.figures import AGGREGATES, plot_groups
+from rlpipe.metrics import EVAL_METRIC, find_runs, group_runs
 
 OPTIONS = {"agg": "mean", "svg": "false", "metric": EVAL_METRIC, "out": None}
 BOOLEANS = {"true": True, "false": False}
@@ -44,30 +44,27 @@ def default_out(dirs: Sequence[str]) -> Path:
     return Path(dirs[0]) / "curves.png" if len(dirs) == 1 else Path("curves.png")
 
 
-def main(argv: Sequence[str] | None = None) -> None:
-    """Command-line entry point; user errors: one line, exit 2."""
-    args = sys.argv[1:] if argv is None else list(argv)
-    if {"-h", "--help"} & set(args):
-        print(__doc__.strip())
-        return
-    try:
-        dirs, options = parse_args(args)
-        groups = group_runs(find_runs(dirs, options["metric"]))
-        written = plot_groups(
-            groups,
-            options["out"] or default_out(dirs),
-            metric=options["metric"],
-            aggregate=options["agg"],
-            svg=BOOLEANS[options["svg"]],
-        )
-    except RlpipeError as err:
-        fail(err)
+def _plot(args: list[str]) -> None:
+    dirs, options = parse_args(args)
+    groups = group_runs(find_runs(dirs, options["metric"]))
+    written = plot_groups(
+        groups,
+        options["out"] or default_out(dirs),
+        metric=options["metric"],
+        aggregate=options["agg"],
+        svg=BOOLEANS[options["svg"]],
+    )
     runs = sum(len(group.runs) for group in groups)
     print(f"rlpipe: {len(groups)} group(s) from {runs} run(s):")
     for group in groups:
         print(f"  {group.label}: {len(group.runs)} seed(s)")
     for path in written:
         print(path)
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    """Command-line entry point; user errors: one line, exit 2."""
+    run_entry_point(__doc__, argv, _plot)
 
 
 if __name__ == "__main__":

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import math
-import random
 import signal
 import time
 from collections import defaultdict
@@ -13,16 +12,16 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-import torch
 from torchrl.envs import EnvBase
 from torchrl.record.loggers import Logger
 from tqdm.auto import tqdm
 
-from rlpipe.algos.base import Algorithm, Metrics
+from rlpipe.algos.base import EPISODE_RETURN, Algorithm, Metrics
+from rlpipe.callbacks import Callback
 from rlpipe.checkpoint import checkpoint_path, list_checkpoints, save_checkpoint
+from rlpipe.episodes import EvalResult, evaluate
 from rlpipe.errors import RlpipeError, check
-from rlpipe.evaluation import EvalResult, evaluate
+from rlpipe.runtime import rng_state, set_rng_state
 
 
 @dataclass
@@ -61,6 +60,25 @@ class _Window:
         return means
 
 
+class Cadence:
+    """Something due every ``every`` frames: at the first multiple of ``every`` past the frames
+    it last fired at (``every`` 0: never)."""
+
+    def __init__(self, every: int, frames: int) -> None:
+        self.every = every
+        self._next = self._after(frames)
+
+    def due(self, frames: int) -> bool:
+        """Whether it is due at ``frames``; if so, the next time is set past ``frames``."""
+        if frames < self._next:
+            return False
+        self._next = self._after(frames)
+        return True
+
+    def _after(self, frames: int) -> float:
+        return (frames // self.every + 1) * self.every if self.every > 0 else math.inf
+
+
 class Interrupted(RlpipeError):
     """SIGINT or SIGTERM stopped the run after a final checkpoint (``exit_code``: 128 + signal)."""
 
@@ -75,34 +93,6 @@ class Interrupted(RlpipeError):
 
 class Diverged(RlpipeError):
     """A loss or a parameter became NaN or infinite; no checkpoint is written after it."""
-
-
-def rng_state() -> dict[str, Any]:
-    """Python's, NumPy's and torch's global generator states, as checkpoint-safe containers."""
-    kind, keys, pos, has_gauss, cached = np.random.get_state()
-    return {
-        "python": random.getstate(),
-        "numpy": [kind, torch.from_numpy(keys.astype(np.int64)), pos, has_gauss, cached],
-        "torch": torch.get_rng_state(),
-    }
-
-
-def set_rng_state(state: dict[str, Any]) -> None:
-    """Restore what :func:`rng_state` captured."""
-    random.setstate(state["python"])
-    kind, keys, pos, has_gauss, cached = state["numpy"]
-    np.random.set_state((kind, keys.numpy().astype(np.uint32), pos, has_gauss, cached))
-    torch.set_rng_state(state["torch"])
-
-
-class Callback:
-    """Hooks into a :class:`Runner`: override the ones you need (all do nothing by default)."""
-
-    def on_eval(self, runner: Runner, result: EvalResult) -> None:
-        """After each greedy evaluation (``runner.algo.frames`` frames in)."""
-
-    def on_end(self, runner: Runner, result: RunResult) -> None:
-        """After the final evaluation and checkpoint, before ``run`` returns."""
 
 
 def check_budget(algo: Algorithm, total_frames: int | None) -> None:
@@ -161,6 +151,9 @@ class Runner:
         self._elapsed_before = 0.0  # wall seconds of the run before a resume
         self._eval_seconds = 0.0
         self._signal: int | None = None
+        self._last_return = math.nan  # of the latest finished training episode
+        self._window = _Window()  # scalars since the last log flush
+        self._window_start, self._window_frames = self._start, 0
 
     def run(self) -> RunResult:
         """Train until the budget is spent; return the final evaluation and timings.
@@ -171,48 +164,29 @@ class Runner:
         """
         start = self._start = time.perf_counter() - self._elapsed_before
         handlers = self._catch_signals()
-        window = _Window()
-        next_log, next_eval, next_ckpt = (
-            _next_multiple(self.algo.frames, every)
+        frames = self.algo.frames
+        log, evaluation, checkpoint = (
+            Cadence(every, frames)
             for every in (self.log_every, self.eval_every, self.checkpoint_every)
         )
-        last_return = math.nan
-        window_start, window_frames = time.perf_counter(), self.algo.frames
-        by_frames = self.total_frames is not None  # else the bar counts iterations
-        bar = tqdm(
-            total=self.total_frames if by_frames else self.algo.budget,
-            initial=self.algo.frames if by_frames else self.algo.iterations,
-            unit="frame" if by_frames else "it",
-            unit_scale=True,
-            disable=not self.progress,
-            dynamic_ncols=True,
-            mininterval=0.5,
-        )
+        self._window_start, self._window_frames = time.perf_counter(), frames
+        bar = self._progress_bar()
         try:
             while not self.finished:
-                before = self.algo.frames if by_frames else self.algo.iterations
+                before = self._progress()
                 metrics = self.algo.train_step()
-                bar.update((self.algo.frames if by_frames else self.algo.iterations) - before)
+                bar.update(self._progress() - before)
                 self._check_finite(metrics)
-                last_return = self._record(metrics, window, last_return)
+                self._record(metrics)
                 frames = self.algo.frames
                 if self._signal is not None:
                     raise Interrupted(self._signal, frames, self.save())
-                if frames >= next_log:
-                    now = time.perf_counter()
-                    scalars = window.pop()
-                    scalars["time/fps"] = (frames - window_frames) / max(now - window_start, 1e-9)
-                    scalars["time/elapsed"] = now - start
-                    self._log(scalars)
-                    window_start, window_frames = now, frames
-                    next_log = _next_multiple(frames, self.log_every)
-                    bar.set_postfix(self._postfix(scalars["time/fps"], last_return), refresh=False)
-                if self.eval_every and frames >= next_eval and not self.finished:
+                if log.due(frames):
+                    bar.set_postfix(self._flush(), refresh=False)
+                if not self.finished and evaluation.due(frames):
                     self._evaluate()
-                    next_eval = _next_multiple(frames, self.eval_every)
-                if self.checkpoint_every and frames >= next_ckpt and not self.finished:
+                if not self.finished and checkpoint.due(frames):
                     self.save()
-                    next_ckpt = _next_multiple(frames, self.checkpoint_every)
             self._evaluate()
             self.save()
         finally:
@@ -281,8 +255,34 @@ class Runner:
             pass
         return previous
 
+    def _progress(self) -> int:
+        """What the bar counts: frames, or iterations when only the algorithm's budget binds."""
+        return self.algo.frames if self.total_frames is not None else self.algo.iterations
+
+    def _progress_bar(self) -> tqdm:
+        by_frames = self.total_frames is not None
+        return tqdm(
+            total=self.total_frames if by_frames else self.algo.budget,
+            initial=self._progress(),
+            unit="frame" if by_frames else "it",
+            unit_scale=True,
+            disable=not self.progress,
+            dynamic_ncols=True,
+            mininterval=0.5,
+        )
+
+    def _flush(self) -> dict[str, str]:
+        """Log the window's means with the frame rate and elapsed time; the bar's postfix."""
+        now, frames = time.perf_counter(), self.algo.frames
+        scalars = self._window.pop()
+        scalars["time/fps"] = (frames - self._window_frames) / max(now - self._window_start, 1e-9)
+        scalars["time/elapsed"] = now - self._start
+        self._log(scalars)
+        self._window_start, self._window_frames = now, frames
+        return self._postfix(scalars["time/fps"])
+
     def _check_finite(self, metrics: Metrics) -> None:
-        bad = [k for k, v in metrics.items() if "loss" in k and not _all_finite(v)]
+        bad = [k for k in self.algo.finite_keys if k in metrics and not _all_finite(metrics[k])]
         if not bad and not all(bool(p.isfinite().all()) for p in self.algo.policy.parameters()):
             bad = ["policy parameters"]
         if bad:
@@ -293,16 +293,16 @@ class Runner:
                 f"{kept[-1] if kept else 'none'}); try a smaller algo.lr"
             )
 
-    def _record(self, metrics: Metrics, window: _Window, last_return: float) -> float:
+    def _record(self, metrics: Metrics) -> None:
+        """Log per-event lists row by row; add scalars to the logging window."""
         for key, value in metrics.items():
             if isinstance(value, list):
                 for item in value:
                     self._log({key: item})
-                if key == "train/episode_return" and value:
-                    last_return = value[-1]
+                if key == EPISODE_RETURN and value:
+                    self._last_return = value[-1]
             else:
-                window.add(key, value)
-        return last_return
+                self._window.add(key, value)
 
     def _evaluate(self) -> None:
         start = time.perf_counter()
@@ -328,8 +328,8 @@ class Runner:
                 "space or pick a writable hydra.run.dir, then resume"
             ) from err
 
-    def _postfix(self, fps: float, last_return: float) -> dict[str, str]:
-        postfix = {"fps": f"{fps:,.0f}", "ep_return": f"{last_return:.1f}"}
+    def _postfix(self, fps: float) -> dict[str, str]:
+        postfix = {"fps": f"{fps:,.0f}", "ep_return": f"{self._last_return:.1f}"}
         if self.last_eval is not None:
             postfix["eval"] = f"{self.last_eval.mean:.1f}±{self.last_eval.std:.1f}"
         return postfix
@@ -337,10 +337,3 @@ class Runner:
 
 def _all_finite(value: float | list[float]) -> bool:
     return all(math.isfinite(v) for v in (value if isinstance(value, list) else [value]))
-
-
-def _next_multiple(frames: int, every: int) -> float:
-    """The first multiple of ``every`` strictly above ``frames`` (``every == 0``: never)."""
-    if every <= 0:
-        return math.inf
-    return (frames // every + 1) * every

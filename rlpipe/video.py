@@ -14,9 +14,6 @@ from torchrl.envs import EnvBase, ExplorationType, set_exploration_type
 from rlpipe.config import EnvConfig
 from rlpipe.envs import make_env, sub_envs
 from rlpipe.errors import RlpipeError
-from rlpipe.evaluation import EvalResult
-from rlpipe.loggers import require_extra, takes_video
-from rlpipe.runner import Callback, Runner, RunResult
 
 MAX_STEPS = 10_000  # for envs without a time limit
 VIDEO_DIR = "videos"
@@ -72,41 +69,3 @@ def write_mp4(frames: np.ndarray, path: str | Path, fps: int) -> Path:
     # macro_block_size=2: keep the frame size (H.264 only needs even sides)
     imageio.mimwrite(path, list(frames), fps=fps, codec="libx264", macro_block_size=2)
     return path
-
-
-class VideoCallback(Callback):
-    """Records one greedy episode to ``<run dir>/videos/eval_<frames>.mp4`` at evaluations.
-
-    At the first evaluation past each multiple of ``every`` frames (1: every evaluation), and
-    always after the final one. TensorBoard and W&B loggers get the video too.
-    """
-
-    def __init__(self, env_cfg: EnvConfig, every: int, seed: int | None = None) -> None:
-        require_extra("video", "video=true")
-        self.env = make_render_env(env_cfg, seed=seed)
-        self.every = every
-        self.next_due = every
-        self.last_frames = -1
-
-    def on_eval(self, runner: Runner, result: EvalResult) -> None:
-        if runner.algo.frames >= self.next_due:
-            self.record(runner)
-            self.next_due = (runner.algo.frames // self.every + 1) * self.every
-
-    def on_end(self, runner: Runner, result: RunResult) -> None:
-        if self.last_frames != runner.algo.frames:
-            self.record(runner)
-        self.env.close()
-
-    def record(self, runner: Runner) -> Path:
-        """Record, write and log one episode of the runner's current greedy policy."""
-        frames = record_episode(runner.algo.policy, self.env)
-        self.last_frames = runner.algo.frames
-        name = f"eval_{runner.algo.frames:012d}.mp4"
-        path = write_mp4(frames, runner.run_dir / VIDEO_DIR / name, frame_rate(self.env))
-        if takes_video(runner.logger):
-            video = torch.from_numpy(frames).permute(0, 3, 1, 2).unsqueeze(0)  # N T C H W
-            runner.logger.log_video(
-                "eval/video", video, step=runner.algo.frames, fps=frame_rate(self.env)
-            )
-        return path

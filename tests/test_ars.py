@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import multiprocessing
 import pickle
 from dataclasses import fields
 from functools import partial
@@ -18,12 +19,13 @@ from torch import nn
 from torch.nn.utils import parameters_to_vector, vector_to_parameters
 
 from rlpipe.algos import ARS, Algorithm, ARSConfig
-from rlpipe.algos.ars import make_ars_policy
+from rlpipe.algos.ars import ARSSearch, PopulationPolicy, ars_update, make_ars_policy
+from rlpipe.algos.ars.rollout import rollout
 from rlpipe.config import EnvConfig
 from rlpipe.envs import make_env
+from rlpipe.episodes import evaluate
 from rlpipe.errors import RlpipeError
-from rlpipe.evaluation import evaluate
-from rlpipe.evolution import ARSSearch, Normalizer, PopulationPolicy, ars_update, rollout
+from rlpipe.normalizer import Normalizer
 
 CARTPOLE = EnvConfig(id="CartPole-v1")
 PENDULUM = EnvConfig(id="Pendulum-v1")
@@ -143,19 +145,23 @@ def test_search_standalone_solves_cartpole_and_tracks_observations():
     assert evaluate(policy, make_env(CARTPOLE, num_envs=2), 2).mean > 400
 
 
+def small_search(seed: int, **kwargs) -> ARSSearch:
+    policy, normalizer = make_ars_policy(make_env(CARTPOLE), ARSConfig())
+    return ARSSearch(
+        policy,
+        partial(make_env, CARTPOLE),
+        num_directions=3,
+        normalizer=normalizer,
+        seed=seed,
+        **kwargs,
+    )
+
+
 def test_worker_processes_give_the_same_search_as_one_process():
     """Each member's episode seed comes from the search, whichever process rolls it out."""
     thetas, counts = [], []
     for workers in (1, 2):
-        policy, normalizer = make_ars_policy(make_env(CARTPOLE), ARSConfig())
-        search = ARSSearch(
-            policy,
-            partial(make_env, CARTPOLE),
-            num_directions=3,
-            normalizer=normalizer,
-            workers=workers,
-            seed=5,
-        )
+        search = small_search(seed=5, workers=workers)
         try:
             before = search.theta
             # several iterations: a worker gets the policy state with its first chunk of each
@@ -163,7 +169,7 @@ def test_worker_processes_give_the_same_search_as_one_process():
         finally:
             search.close()
         assert not torch.equal(before, search.theta)
-        assert normalizer.count == sum(steps) > 18
+        assert search.normalizer.count == sum(steps) > 18
         thetas.append(search.theta)
         counts.append(steps)
     assert torch.allclose(thetas[0], thetas[1]) and counts[0] == counts[1]
@@ -221,6 +227,52 @@ def test_algorithm_checkpoint_holds_normaliser_and_parameters():
     other.close()
 
 
+def test_search_restored_mid_way_continues_as_the_uninterrupted_one():
+    """θ, the normaliser, the iteration count and the generator travel in the state dict;
+    CartPole-v1's reset(seed) fixes each episode, so the env copies' own seed does not matter."""
+    straight = small_search(seed=5, workers=1)
+    interrupted = small_search(seed=5, workers=1)
+    try:
+        for _ in range(2):
+            straight.step()
+            interrupted.step()
+        buffer = io.BytesIO()
+        torch.save(interrupted.state_dict(), buffer)
+    finally:
+        interrupted.close()
+    buffer.seek(0)
+    resumed = small_search(seed=123, workers=1)  # another generator, a fresh normaliser
+    try:
+        resumed.load_state_dict(torch.load(buffer, weights_only=True))
+        assert resumed.iterations == 2
+        for _ in range(2):
+            expected, got = straight.step(), resumed.step()
+            assert got["episode_return"] == expected["episode_return"]
+    finally:
+        straight.close()
+        resumed.close()
+    assert not torch.equal(resumed.theta, torch.zeros_like(resumed.theta))
+    assert torch.equal(resumed.theta, straight.theta)
+    assert torch.equal(resumed.normalizer.mean, straight.normalizer.mean)
+
+
+def test_building_ars_starts_no_workers_until_it_trains():
+    """``load_run`` builds a run's algorithm only to hold its policy: that spawns nothing."""
+    before = set(multiprocessing.active_children())
+    algo = ARS(partial(make_env, CARTPOLE), ARSConfig(workers=2))
+    assert set(multiprocessing.active_children()) == before
+    algo.close()  # nothing started, nothing to stop
+    assert set(multiprocessing.active_children()) == before
+    algo = ARS(partial(make_env, CARTPOLE), ARSConfig(workers=2))
+    try:
+        metrics = algo.train_step()
+        assert len(set(multiprocessing.active_children()) - before) == 2
+    finally:
+        algo.close()
+    assert metrics["train/env_steps"] == algo.frames > 0 and algo.iterations == 1
+    assert set(multiprocessing.active_children()) == before
+
+
 def test_config_checks():
     with pytest.raises(RlpipeError, match="num_best"):
         ARSConfig(num_directions=4, num_best=5)
@@ -228,6 +280,19 @@ def test_config_checks():
         ARSConfig(noise=0)
     with pytest.raises(RlpipeError, match="step_size"):
         ARSConfig(step_size=-0.1)
+    with pytest.raises(RlpipeError, match="algo.noise must be > 0, got inf"):
+        ARSConfig(noise=float("inf"))
+    with pytest.raises(RlpipeError, match="algo.step_size must be > 0, got nan"):
+        ARSConfig(step_size=float("nan"))
+    # the search checks the same parameters, named as its own arguments
+    policy, _ = make_ars_policy(make_env(CARTPOLE), ARSConfig())
+    factory = partial(make_env, CARTPOLE)
+    with pytest.raises(RlpipeError, match=r"^num_best \(3\) must be between 1 and num_direc"):
+        ARSSearch(policy, factory, num_directions=2, num_best=3)
+    with pytest.raises(RlpipeError, match="^noise must be > 0, got nan"):
+        ARSSearch(policy, factory, noise=float("nan"))
+    with pytest.raises(RlpipeError, match="^backend must be one of local, ray; got 'spark'"):
+        ARSSearch(policy, factory, backend="spark")
 
 
 def test_non_flat_observation_is_rejected(image_env_id):

@@ -7,11 +7,13 @@ from pathlib import Path
 import pytest
 from hydra import compose, initialize_config_module
 from hydra.errors import ConfigCompositionException
+from omegaconf import OmegaConf
 
-from rlpipe.algos import DQNConfig
+from rlpipe.algos import ALGORITHMS, DQNConfig
 from rlpipe.cli import register_configs, to_config
-from rlpipe.config import Config, EnvConfig, LoggerConfig
+from rlpipe.config import RUN_KEYS, Config, EnvConfig, LoggerConfig
 from rlpipe.errors import RlpipeError
+from rlpipe.pipeline import train
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
 register_configs()
@@ -118,3 +120,46 @@ def test_plain_dataclasses_work_without_hydra():
     assert cfg.algo.name == "dqn" and cfg.logger == LoggerConfig()
     with pytest.raises(RlpipeError):
         DQNConfig(batch_size=0)
+
+
+def test_python_default_config_is_the_cli_default():
+    assert compose_config() == Config()
+    assert compose_config().resolved() == Config().resolved()
+
+
+@pytest.mark.parametrize("algo", ["dqn", "reinforce", "ars", "mbrl"])
+def test_algo_files_only_name_their_schema(algo):
+    """Defaults live in the dataclasses: an algo file repeats none and sets no run keys."""
+    node = OmegaConf.load(CONF / "algo" / f"{algo}.yaml")
+    assert list(node) == ["defaults"]
+    assert OmegaConf.to_container(node.defaults) == [f"/schema/algo/{algo}@_here_", "_self_"]
+    assert "_global_" not in (CONF / "algo" / f"{algo}.yaml").read_text()
+    cfg = compose_config(f"algo={algo}")
+    assert cfg.algo == ALGORITHMS[algo][0]()
+
+
+@pytest.mark.parametrize(
+    "algo, expected",
+    [
+        ("dqn", (60_000, 10_000, 10, 25_000)),
+        ("reinforce", (None, 5_000, 20, 25_000)),
+        ("ars", (None, 1_000_000, 10, 1_000_000)),
+        ("mbrl", (15_000, 2_000, 10, 5_000)),
+    ],
+)
+def test_null_run_keys_take_the_algorithms_values(algo, expected):
+    resolved = compose_config(f"algo={algo}").resolved()
+    assert tuple(getattr(resolved, key) for key in RUN_KEYS) == expected
+    overridden = compose_config(f"algo={algo}", "total_frames=123", "eval_every=0").resolved()
+    assert (overridden.total_frames, overridden.eval_every) == (123, 0)
+
+
+def test_python_one_liner_runs_with_the_algorithms_budget(tmp_path):
+    """`train(Config(env=..., algo=DQNConfig()), dir)` needs no total_frames: DQN's is 60k."""
+    cfg = Config(env=EnvConfig(id="Acrobot-v1"), algo=DQNConfig())
+    assert cfg.resolved() == compose_config("env=gym", "env.id=Acrobot-v1").resolved()
+    assert cfg.resolved().total_frames == DQNConfig().total_frames == 60_000
+    short = DQNConfig(total_frames=300, eval_every=0, eval_episodes=1, learning_starts=64)
+    result = train(Config(env=EnvConfig(id="Acrobot-v1"), algo=short, progress=False), tmp_path)
+    assert result.frames == 300
+    assert OmegaConf.load(tmp_path / "config.yaml").total_frames == 300  # resolved, recorded

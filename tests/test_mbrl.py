@@ -13,10 +13,10 @@ import torch
 from torchrl.envs import ExplorationType, set_exploration_type
 
 from rlpipe.algos import MBRL, Algorithm, MBRLConfig
+from rlpipe.algos.mbrl import ActionCoder, EnsembleMLP, Planner, WorldModel
 from rlpipe.config import EnvConfig
 from rlpipe.envs import make_env
 from rlpipe.errors import RlpipeError
-from rlpipe.planning import ActionCoder, EnsembleMLP, Planner, WorldModel
 
 SMALL = dict(
     ensemble_size=2,

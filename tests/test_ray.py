@@ -13,11 +13,10 @@ import torch
 from conftest import TINY
 
 from rlpipe.algos import ARSConfig
-from rlpipe.algos.ars import RayConfig, make_ars_policy
+from rlpipe.algos.ars import ARSSearch, RayConfig, make_ars_policy
 from rlpipe.config import EnvConfig
 from rlpipe.envs import make_env
 from rlpipe.errors import RlpipeError
-from rlpipe.evolution import ARSSearch
 
 CARTPOLE = EnvConfig(id="CartPole-v1")
 RAY_OPTIONS = ["algo=ars", "algo.num_directions=2", "algo.num_best=2", "logger=none"]
@@ -41,11 +40,11 @@ def two_iterations(**backend) -> tuple[torch.Tensor, list, list]:
         **backend,
     )
     try:
-        if backend.get("backend") == "ray":
+        stats = [search.step() for _ in range(2)]
+        if backend.get("backend") == "ray":  # started by the first step
             import ray
 
             assert ray.available_resources().get("CPU", 0) == 0  # the two actors hold both CPUs
-        stats = [search.step() for _ in range(2)]
     finally:
         search.close()
     return search.theta, [s["episode_return"] for s in stats], normalizer.mean.tolist()
@@ -59,6 +58,14 @@ def test_ray_backend_gives_the_same_search_as_the_local_backend():
         assert torch.equal(local[0], on_ray[0]) and local[1] == on_ray[1]
         # one batch in this process merges the observation statistics in another order
         assert local[2] == pytest.approx(on_ray[2], rel=1e-12)
+
+
+def test_ray_search_starts_ray_only_when_it_steps():
+    ray = pytest.importorskip("ray")
+    policy, _ = make_ars_policy(make_env(CARTPOLE), ARSConfig())
+    search = ARSSearch(policy, partial(make_env, CARTPOLE), backend="ray", ray_num_cpus=2)
+    search.close()
+    assert not ray.is_initialized()
 
 
 def test_cli_trains_ars_on_ray(rlpipe_cli):

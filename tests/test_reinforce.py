@@ -19,8 +19,8 @@ from rlpipe.algos.reinforce import collect_episodes, make_policy, normalized_ret
 from rlpipe.checkpoint import load_checkpoint, save_checkpoint
 from rlpipe.config import EnvConfig
 from rlpipe.envs import make_env
+from rlpipe.episodes import evaluate
 from rlpipe.errors import RlpipeError
-from rlpipe.evaluation import evaluate
 from rlpipe.runner import Runner
 
 CONTINUOUS = EnvConfig(id="rlpipe/CartPoleContinuous-v0", num_envs=4, max_episode_steps=50)

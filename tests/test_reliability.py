@@ -23,9 +23,9 @@ from rlpipe.algos import ARSConfig, DQNConfig, ReinforceConfig
 from rlpipe.checkpoint import checkpoint_path, list_checkpoints, load_checkpoint
 from rlpipe.config import Config, EnvConfig, LoggerConfig
 from rlpipe.envs import make_env
+from rlpipe.pipeline import train
 from rlpipe.rundir import load_run
 from rlpipe.runner import Diverged, Runner
-from rlpipe.train import train
 
 # DQN on CartPole: 2 envs, 20 frames per iteration, a checkpoint every 200 frames
 DQN_ARGS = [
@@ -209,6 +209,8 @@ def test_evaluate_on_a_run_without_checkpoint_is_one_line(tmp_path, finished_run
 
 class _Drifting:
     """A stand-in algorithm whose loss turns NaN at its third iteration."""
+
+    finite_keys = ("train/loss",)  # what the runner checks for divergence
 
     def __init__(self) -> None:
         self.policy = TensorDictModule(nn.Linear(4, 2), ["observation"], ["action"])

@@ -14,9 +14,9 @@ from rlpipe.algos import DQN, DQNConfig
 from rlpipe.checkpoint import list_checkpoints, load_checkpoint
 from rlpipe.config import EnvConfig, LoggerConfig
 from rlpipe.envs import make_env
-from rlpipe.evaluation import evaluate
+from rlpipe.episodes import evaluate
+from rlpipe.loggers import make_logger
 from rlpipe.runner import Runner
-from rlpipe.train import make_logger
 
 
 class _ConstantAction(nn.Module):

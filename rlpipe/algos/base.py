@@ -13,6 +13,8 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.collectors import Collector
 from torchrl.envs import EnvBase
 
+from rlpipe.envs import EnvFactory
+
 # Scalars are averaged over the runner's logging window; lists hold one value per event
 # (e.g. one return per finished training episode) and are logged row by row.
 Metrics = dict[str, float | list[float]]
@@ -86,3 +88,53 @@ def make_collector(
         policy_device=device,
         storing_device=device,
     )
+
+
+class EnvAlgorithm:
+    """What DQN, REINFORCE and MBRL share: built on one env from the factory (closed again if
+    building fails), frame and iteration counters, and a state dict over named attributes.
+
+    Subclasses implement ``_build(env)`` (``self.cfg`` and ``self.device`` are set) and
+    ``train_step``, and list in ``state_attrs`` the attributes a checkpoint holds: anything with
+    ``state_dict``/``load_state_dict`` (modules, optimizers, replay buffers) or
+    ``get_state``/``set_state`` (torch generators). ``_restored`` runs after a load.
+    """
+
+    finite_keys: ClassVar[tuple[str, ...]] = (LOSS,)
+    state_attrs: ClassVar[tuple[str, ...]] = ()
+    budget: int | None = None  # frames only: the run's total_frames
+
+    def __init__(self, env_factory: EnvFactory, cfg: Any, *, device: str | torch.device = "cpu"):
+        self.cfg = cfg
+        self.device = torch.device(device)
+        self.frames = self.iterations = 0
+        with closing_on_error(env_factory()) as env:
+            self._build(env)
+
+    def _build(self, env: EnvBase) -> None:
+        raise NotImplementedError
+
+    def state_dict(self) -> dict[str, Any]:
+        state = {name: _save(getattr(self, name)) for name in self.state_attrs}
+        return {**state, "frames": self.frames, "iterations": self.iterations}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        for name in self.state_attrs:
+            _load(getattr(self, name), state[name])
+        self.frames = int(state["frames"])
+        self.iterations = int(state["iterations"])
+        self._restored()
+
+    def _restored(self) -> None:
+        """Bring derived state (schedules, collector weights) in line after a load."""
+
+
+def _save(part: Any) -> Any:
+    return part.get_state() if isinstance(part, torch.Generator) else part.state_dict()
+
+
+def _load(part: Any, state: Any) -> None:
+    if isinstance(part, torch.Generator):
+        part.set_state(state)
+    else:
+        part.load_state_dict(state)

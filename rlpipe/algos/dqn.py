@@ -4,8 +4,7 @@ DQNLoss (Huber) and SoftUpdate."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass
 
 import torch
 from tensordict.nn import TensorDictSequential
@@ -14,10 +13,10 @@ from torchrl.envs import EnvBase
 from torchrl.modules import EGreedyModule, QValueActor
 from torchrl.objectives import DQNLoss, SoftUpdate
 
-from rlpipe.algos.base import LOSS, Metrics, closing_on_error, episode_metrics, make_collector
-from rlpipe.config import AlgoConfig
-from rlpipe.envs import EnvFactory, is_discrete, observation_size
-from rlpipe.errors import RlpipeError, check, check_choice, check_fields
+from rlpipe.algos.base import LOSS, EnvAlgorithm, Metrics, episode_metrics, make_collector
+from rlpipe.config import AlgoConfig, checked
+from rlpipe.envs import is_discrete, observation_size
+from rlpipe.errors import RlpipeError, check
 from rlpipe.models import mlp
 
 LOSSES = ("smooth_l1", "l2", "l1")
@@ -30,46 +29,39 @@ class DQNConfig(AlgoConfig):
 
     name: str = "dqn"
     total_frames: int | None = 60_000  # DQN has no budget of its own: the run's length
-    hidden_sizes: list[int] = field(default_factory=lambda: [128, 128])
-    lr: float = 1e-4
-    weight_decay: float = 1e-2  # AdamW's default
+    hidden_sizes: list[int] = checked([128, 128], "sizes")
+    lr: float = checked(1e-4, "positive")
+    weight_decay: float = checked(1e-2, "non_negative")  # AdamW's default
     amsgrad: bool = True
-    batch_size: int = 128
+    batch_size: int = checked(128, "at_least_one")
     buffer_size: int = 10_000
-    gamma: float = 0.99
-    tau: float = 0.005  # soft target update: target <- tau * online + (1 - tau) * target
-    grad_clip_value: float = 100.0
-    loss: str = "smooth_l1"  # Huber
+    gamma: float = checked(0.99, "discount")
+    # soft target update: target <- tau * online + (1 - tau) * target
+    tau: float = checked(0.005, "discount")
+    grad_clip_value: float = checked(100.0, "positive")
+    loss: str = checked("smooth_l1", choices=LOSSES)  # Huber
     double_dqn: bool = False
     eps_start: float = 0.9
     eps_end: float = 0.05
-    eps_schedule: str = "exp"  # exp: eps_end + (eps_start - eps_end) * exp(-t / eps_decay)
-    eps_decay: int = 1000  # frames: time constant (exp) or annealing length (linear)
-    frames_per_batch: int = 4  # env frames collected per iteration (across all envs) ...
-    updates_per_batch: int = 4  # ... then as many gradient steps: one per frame, as the notebook
-    learning_starts: int = 128  # frames collected before the first update
+    # exp: eps_end + (eps_start - eps_end) * exp(-t / eps_decay); linear: annealed over eps_decay
+    eps_schedule: str = checked("exp", choices=EPS_SCHEDULES)
+    eps_decay: int = checked(1000, "at_least_one")  # frames
+    # env frames collected per iteration (across all envs), then as many gradient steps: one
+    # per frame, as the notebook
+    frames_per_batch: int = checked(4, "at_least_one")
+    updates_per_batch: int = checked(4, "non_negative")
+    learning_starts: int = checked(128, "non_negative")  # frames collected before the first update
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        check_fields(
-            self,
-            "algo.",
-            positive=("lr", "grad_clip_value"),
-            non_negative=("weight_decay", "updates_per_batch", "learning_starts"),
-            at_least_one=("batch_size", "eps_decay", "frames_per_batch"),
-            discount=("gamma", "tau"),
-            sizes=("hidden_sizes",),
-        )
         check(
             self.buffer_size >= self.batch_size,
             f"algo.buffer_size ({self.buffer_size}) must be >= algo.batch_size ({self.batch_size})",
         )
-        check_choice(self.eps_schedule, "algo.eps_schedule", EPS_SCHEDULES)
         check(
             0 <= self.eps_end <= self.eps_start <= 1,
             f"need 0 <= algo.eps_end <= algo.eps_start <= 1, got {self.eps_end}, {self.eps_start}",
         )
-        check_choice(self.loss, "algo.loss", LOSSES)
 
 
 _STORED_KEYS = (
@@ -90,7 +82,7 @@ def epsilon(frames: int, cfg: DQNConfig) -> float:
     return cfg.eps_start + fraction * (cfg.eps_end - cfg.eps_start)
 
 
-class DQN:
+class DQN(EnvAlgorithm):
     """Deep Q-learning on a batched TorchRL env with a discrete action space.
 
     Each :meth:`train_step` collects ``cfg.frames_per_batch`` frames with the ε-greedy policy,
@@ -98,25 +90,17 @@ class DQN:
     followed by a soft target update.
     """
 
-    finite_keys = (LOSS,)
+    cfg: DQNConfig
+    state_attrs = ("loss", "optimizer", "buffer")
 
-    def __init__(
-        self, env_factory: EnvFactory, cfg: DQNConfig, *, device: str | torch.device = "cpu"
-    ):
-        with closing_on_error(env_factory()) as env:
-            self._build(env, cfg, torch.device(device))
-
-    def _build(self, env: EnvBase, cfg: DQNConfig, device: torch.device) -> None:
+    def _build(self, env: EnvBase) -> None:
+        cfg, device = self.cfg, self.device
         if not is_discrete(env):
             raise RlpipeError(
                 f"DQN needs a discrete action space, but this env's actions are "
                 f"{type(env.action_spec_unbatched).__name__} (continuous); pick a discrete env "
                 "(cartpole, mountaincar, lunarlander) or another algorithm"
             )
-        self.cfg = cfg
-        self.device = device
-        self.frames = self.iterations = 0
-        self.budget = None  # frames only: the run's total_frames
         spec = env.action_spec_unbatched.to(self.device)
         net = mlp(observation_size(env), spec.space.n, cfg.hidden_sizes).to(self.device)
         self.policy = QValueActor(net, in_keys=["observation"], spec=spec)
@@ -176,21 +160,7 @@ class DQN:
             self.collector.update_policy_weights_()
         return metrics
 
-    def state_dict(self) -> dict[str, Any]:
-        return {
-            "loss": self.loss.state_dict(),
-            "optimizer": self.optimizer.state_dict(),
-            "buffer": self.buffer.state_dict(),
-            "frames": self.frames,
-            "iterations": self.iterations,
-        }
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        self.loss.load_state_dict(state["loss"])
-        self.optimizer.load_state_dict(state["optimizer"])
-        self.buffer.load_state_dict(state["buffer"])
-        self.frames = int(state["frames"])
-        self.iterations = int(state["iterations"])
+    def _restored(self) -> None:
         self.exploration.eps.fill_(epsilon(self.frames, self.cfg))
         self.collector.update_policy_weights_()
 

@@ -5,8 +5,7 @@ optionally, a learned state-value baseline whose targets TorchRL's TD(1) estimat
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass
 
 import torch
 from tensordict import NestedKey, TensorDictBase
@@ -23,11 +22,12 @@ from torchrl.modules import IndependentNormal, ProbabilisticActor
 from torchrl.objectives.value import TD1Estimator
 from torchrl.objectives.value.functional import reward2go
 
-from rlpipe.algos.base import LOSS, Metrics, closing_on_error, episode_metrics
-from rlpipe.config import AlgoConfig
-from rlpipe.envs import EnvFactory, is_discrete, num_actions, observation_size
-from rlpipe.errors import RlpipeError, check_choice, check_fields
-from rlpipe.models import mlp
+from rlpipe.algos.base import LOSS, EnvAlgorithm, Metrics, episode_metrics
+from rlpipe.config import AlgoConfig, checked
+from rlpipe.envs import is_discrete, num_actions, observation_size
+from rlpipe.episodes import episode_quotas
+from rlpipe.errors import RlpipeError
+from rlpipe.models import ClampAction, mlp
 
 add_custom_mapping("sigmoid", torch.sigmoid)  # the notebook's std in (0, 1)
 _EPS = torch.finfo(torch.float32).eps
@@ -43,42 +43,18 @@ class ReinforceConfig(AlgoConfig):
     name: str = "reinforce"
     eval_every: int = 5_000  # about one evaluation per epoch on the continuous CartPole
     eval_episodes: int = 20  # the notebook's test episodes
-    epochs: int = 20  # the run's length, unless total_frames stops it first
-    hidden_sizes: list[int] = field(default_factory=list)  # []: a linear policy
-    episodes_per_epoch: int = 100  # whole episodes collected per train_step
-    updates_per_epoch: int = 50  # Adam steps per epoch, each on a random minibatch
-    batch_size: int = 128
-    gamma: float = 0.99
-    lr: float = 1e-3
-    weight_decay: float = 1e-4
-    baseline: str = "none"  # none: the notebook's weights; value: returns minus a learned V(s)
-    value_hidden_sizes: list[int] = field(default_factory=lambda: [64])  # V(s)'s network
-    value_lr: float = 1e-2  # V(s)'s Adam learning rate (same weight decay)
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        check_fields(
-            self,
-            "algo.",
-            positive=("lr", "value_lr"),
-            non_negative=("weight_decay",),
-            at_least_one=("epochs", "episodes_per_epoch", "updates_per_epoch", "batch_size"),
-            discount=("gamma",),
-            sizes=("hidden_sizes", "value_hidden_sizes"),
-        )
-        check_choice(self.baseline, "algo.baseline", BASELINES)
-
-
-class Clip(nn.Module):
-    """Clamp a tensor into ``[low, high]`` (element-wise bounds)."""
-
-    def __init__(self, low: torch.Tensor, high: torch.Tensor) -> None:
-        super().__init__()
-        self.register_buffer("low", low)
-        self.register_buffer("high", high)
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return torch.clamp(x, self.low, self.high)
+    epochs: int = checked(20, "at_least_one")  # the run's length, unless total_frames caps it
+    hidden_sizes: list[int] = checked([], "sizes")  # []: a linear policy
+    episodes_per_epoch: int = checked(100, "at_least_one")  # whole episodes per train_step
+    updates_per_epoch: int = checked(50, "at_least_one")  # Adam steps, each on a random minibatch
+    batch_size: int = checked(128, "at_least_one")
+    gamma: float = checked(0.99, "discount")
+    lr: float = checked(1e-3, "positive")
+    weight_decay: float = checked(1e-4, "non_negative")
+    # none: the notebook's weights; value: returns minus a learned V(s)
+    baseline: str = checked("none", choices=BASELINES)
+    value_hidden_sizes: list[int] = checked([64], "sizes")  # V(s)'s network
+    value_lr: float = checked(1e-2, "positive")  # V(s)'s Adam learning rate (same weight decay)
 
 
 class TensorModule(TensorDictModuleBase):
@@ -86,8 +62,7 @@ class TensorModule(TensorDictModuleBase):
 
     What ``TensorDictModule`` does for tensor-to-tensor modules, minus its per-output
     ``TensorDict.from_any``, which in tensordict 0.14.3 looks ``pandas`` up with
-    ``importlib.util.find_spec`` on every call (~0.1 ms per output when pandas is absent,
-    paid per env step and per minibatch).
+    ``importlib.util.find_spec`` on every call, a cost paid per env step and per minibatch.
     """
 
     def __init__(
@@ -142,7 +117,7 @@ def make_policy(env: EnvBase, hidden_sizes: list[int]) -> tuple[TensorDictModule
         distribution_class=IndependentNormal,
         distribution_kwargs={"upscale": 1.0},
     )
-    clip = Clip(spec.space.low.clone(), spec.space.high.clone())
+    clip = ClampAction(spec.space.low, spec.space.high)
     return TensorDictSequential(actor, TensorModule(clip, ["sample"], ["action"])), "sample"
 
 
@@ -172,7 +147,7 @@ def collect_episodes(
     each ending at a ``("next", "done")`` flag.
     """
     n = env.batch_size.numel()
-    remaining = torch.tensor([episodes // n + (i < episodes % n) for i in range(n)])
+    remaining = episode_quotas(n, episodes)
     device = next(policy.parameters()).device
     td, steps, kept = env.reset(), [], []
     with set_exploration_type(ExplorationType.RANDOM):
@@ -187,7 +162,7 @@ def collect_episodes(
     return rollout[torch.stack(kept, 1)], n * len(steps)
 
 
-class Reinforce:
+class Reinforce(EnvAlgorithm):
     """REINFORCE (Monte-Carlo policy gradient) on a batched TorchRL env, discrete or continuous.
 
     Each :meth:`train_step` is one epoch: :func:`collect_episodes` runs
@@ -199,29 +174,23 @@ class Reinforce:
     (plus, with the baseline, ``V``'s squared error to the epoch's TD(1) targets).
     """
 
-    finite_keys = (LOSS,)
+    cfg: ReinforceConfig
 
-    def __init__(
-        self, env_factory: EnvFactory, cfg: ReinforceConfig, *, device: str | torch.device = "cpu"
-    ):
-        with closing_on_error(env_factory()) as env:
-            self._build(env, cfg, torch.device(device))
-
-    def _build(self, env: EnvBase, cfg: ReinforceConfig, device: torch.device) -> None:
-        self.cfg = cfg
-        self.device = device
-        self.frames = self.iterations = 0
+    def _build(self, env: EnvBase) -> None:
+        cfg = self.cfg
         self.budget = cfg.epochs
         self.policy, self._sample_key = make_policy(env, cfg.hidden_sizes)
         self.policy.to(self.device)
         self._actor = self.policy if self._sample_key == "action" else self.policy[0]
         groups = [{"params": list(self.policy.parameters())}]
         self.value: TensorModule | None = None
+        self.state_attrs = ("policy", "optimizer")
         if cfg.baseline == "value":
             net = mlp(observation_size(env), 1, cfg.value_hidden_sizes)
             self.value = TensorModule(net, ["observation"], ["state_value"]).to(self.device)
             self._estimator = TD1Estimator(gamma=cfg.gamma, value_network=self.value)
             groups.append({"params": list(self.value.parameters()), "lr": cfg.value_lr})
+            self.state_attrs += ("value",)
         self.optimizer = torch.optim.Adam(
             groups,
             lr=cfg.lr,
@@ -267,25 +236,6 @@ class Reinforce:
         metrics: Metrics = {LOSS: float(torch.stack(losses).mean())}
         metrics.update(episode_metrics(batch))
         return metrics
-
-    def state_dict(self) -> dict[str, Any]:
-        state = {
-            "policy": self.policy.state_dict(),
-            "optimizer": self.optimizer.state_dict(),
-            "frames": self.frames,
-            "iterations": self.iterations,
-        }
-        if self.value is not None:
-            state["value"] = self.value.state_dict()
-        return state
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        self.policy.load_state_dict(state["policy"])
-        if self.value is not None:
-            self.value.load_state_dict(state["value"])
-        self.optimizer.load_state_dict(state["optimizer"])
-        self.frames = int(state["frames"])
-        self.iterations = int(state["iterations"])
 
     def close(self) -> None:
         """Close the env."""

@@ -126,7 +126,9 @@ def num_actions(env: EnvBase) -> int:
 def _vector_env(env: EnvBase) -> gym.vector.VectorEnv:
     """The gymnasium vector env inside a :func:`make_env` env."""
     base = env.base_env if isinstance(env, TransformedEnv) else env
-    venv = base.__dict__.get("_env")
+    # TorchRL's GymWrapper forwards attributes it lacks to the gymnasium env it wraps, whose
+    # ``unwrapped`` is the vector env itself (under any vector wrappers)
+    venv = base.unwrapped if isinstance(base, GymWrapper) else None
     if not isinstance(venv, gym.vector.VectorEnv):
         raise RlpipeError(f"expected an env built by rlpipe.make_env, got {env!r}")
     return venv

@@ -8,6 +8,22 @@ import torch
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase, ExplorationType, set_exploration_type
 
+MAX_EVAL_ENVS = 32  # env copies an evaluation steps in lock-step, at most
+
+
+def eval_envs(episodes: int) -> int:
+    """How many env copies to evaluate ``episodes`` episodes on: one each, capped."""
+    return min(episodes, MAX_EVAL_ENVS)
+
+
+def episode_quotas(n: int, episodes: int) -> torch.Tensor:
+    """How many of ``episodes`` each of ``n`` lock-step env copies contributes.
+
+    ``episodes // n`` each, +1 for the first ``episodes % n`` copies: a fixed share per copy
+    keeps short episodes (which finish first) from being over-represented.
+    """
+    return torch.tensor([episodes // n + (i < episodes % n) for i in range(n)])
+
 
 @dataclass
 class EvalResult:
@@ -40,12 +56,11 @@ class EvalResult:
 def evaluate(policy: TensorDictModuleBase, env: EnvBase, episodes: int) -> EvalResult:
     """Run ``episodes`` complete episodes of ``policy`` in deterministic mode on ``env``.
 
-    The env's batch of ``n`` copies runs in lock-step; copy ``i`` contributes its first
-    ``episodes // n`` (+1 for the first ``episodes % n`` copies) episodes, so short episodes
-    are not over-represented. Finished copies are reset and their extra episodes ignored.
+    The env's batch of ``n`` copies runs in lock-step; each contributes its first
+    :func:`episode_quotas` episodes. Finished copies are reset and their extra episodes ignored.
     """
     n = env.batch_size.numel()
-    remaining = torch.tensor([episodes // n + (i < episodes % n) for i in range(n)])
+    remaining = episode_quotas(n, episodes)
     result = EvalResult()
     policy_device = next(policy.parameters(), torch.empty(0)).device
     with set_exploration_type(ExplorationType.DETERMINISTIC):

@@ -2,17 +2,14 @@
 
 from __future__ import annotations
 
-import random
 from functools import partial
 from pathlib import Path
 
-import numpy as np
-import torch
-
 from rlpipe.algos import make_algorithm
-from rlpipe.config import Config
-from rlpipe.curves import make_callbacks
+from rlpipe.callbacks import make_callbacks
+from rlpipe.config import RUN_KEYS, Config
 from rlpipe.envs import make_env
+from rlpipe.episodes import eval_envs
 from rlpipe.errors import RlpipeError
 from rlpipe.loggers import make_logger
 from rlpipe.rundir import (
@@ -23,28 +20,7 @@ from rlpipe.rundir import (
     truncate_metrics,
 )
 from rlpipe.runner import Runner, RunResult, check_budget
-
-MAX_EVAL_ENVS = 32
-
-
-def resolve_device(name: str) -> torch.device:
-    """``auto`` -> cuda when available, else cpu; anything else must be a valid torch device."""
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        device = torch.device(name)
-    except RuntimeError as err:
-        raise RlpipeError(f"device must be auto, cpu, cuda or cuda:N; got {name!r}") from err
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise RlpipeError(f"device={name} asked for, but no CUDA device is available; use auto")
-    return device
-
-
-def seed_everything(seed: int) -> None:
-    """Seed Python's, NumPy's and torch's global generators."""
-    random.seed(seed)
-    np.random.seed(seed)
-    torch.manual_seed(seed)
+from rlpipe.runtime import resolve_device, seed_everything, set_threads
 
 
 def train(cfg: Config, run_dir: str | Path) -> RunResult:
@@ -62,11 +38,8 @@ def train(cfg: Config, run_dir: str | Path) -> RunResult:
         state = resume_state(cfg, run_dir, required=bool(cfg.resume))
     frames = state["frames"] if state else 0
     seed_everything(cfg.seed)
-    if cfg.threads:
-        torch.set_num_threads(cfg.threads)
-    eval_env = make_env(
-        cfg.env, num_envs=min(cfg.eval_episodes, MAX_EVAL_ENVS), seed=cfg.seed + 10_000
-    )
+    set_threads(cfg.threads)
+    eval_env = make_env(cfg.env, num_envs=eval_envs(cfg.eval_episodes), seed=cfg.seed + 10_000)
     try:  # a resumed run meets fresh episodes: the seed moves with the frames
         algo = make_algorithm(
             partial(make_env, cfg.env, seed=cfg.seed + frames), cfg.algo, device=device
@@ -88,10 +61,7 @@ def train(cfg: Config, run_dir: str | Path) -> RunResult:
             algo,
             eval_env,
             run_dir,
-            total_frames=cfg.total_frames,
-            eval_every=cfg.eval_every,
-            eval_episodes=cfg.eval_episodes,
-            checkpoint_every=cfg.checkpoint_every,
+            **{key: getattr(cfg, key) for key in RUN_KEYS},
             keep_checkpoints=cfg.keep_checkpoints,
             callbacks=make_callbacks(cfg),  # before the logger: a bad video setting writes nothing
             logger=make_logger(cfg.logger, run_dir),

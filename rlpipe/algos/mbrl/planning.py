@@ -24,8 +24,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from rlpipe.evolution import Normalizer
 from rlpipe.models import mlp
+from rlpipe.normalizer import Normalizer
 
 
 class EnsembleMLP(nn.Module):
@@ -74,7 +74,7 @@ class WorldModel(nn.Module):
       (``can_terminate``), so envs that only truncate (Pendulum) skip it. Terminal transitions
       are rare: the fit weights them to balance the classes, erring towards predicting falls.
 
-    The normalisers (:class:`rlpipe.evolution.Normalizer`) grow with every stored transition
+    The normalisers (:class:`rlpipe.normalizer.Normalizer`) grow with every stored transition
     (:meth:`observe`) and are part of the state dict.
     """
 
@@ -211,13 +211,9 @@ class Planner:
         gamma: float,
         init_std: float,
     ) -> None:
-        self.model = model
-        self.coder = coder
-        self.method = method
-        self.horizon = horizon
-        self.candidates = candidates
+        self.model, self.coder, self.method = model, coder, method
+        self.horizon, self.candidates, self.elites = horizon, candidates, elites
         self.iterations = iterations if method == "cem" else 1
-        self.elites = elites
         self.init_std = init_std
         self.discounts = gamma ** torch.arange(horizon, dtype=torch.float32)
 

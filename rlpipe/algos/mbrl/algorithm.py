@@ -1,10 +1,9 @@
 """Model-based RL: collect with model-predictive control, fit learned dynamics/reward/termination
-models, plan on them (PETS-style, deterministic ensemble). See :mod:`rlpipe.planning`."""
+models, plan on them (PETS-style, deterministic ensemble). See :mod:`rlpipe.algos.mbrl.planning`."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDictBase
@@ -14,11 +13,11 @@ from torchrl.data import Bounded, LazyTensorStorage, ReplayBuffer
 from torchrl.envs import EnvBase, ExplorationType
 from torchrl.envs.utils import exploration_type
 
-from rlpipe.algos.base import Metrics, closing_on_error, episode_metrics, make_collector
-from rlpipe.config import AlgoConfig
-from rlpipe.envs import EnvFactory, is_discrete, num_actions, observation_size
-from rlpipe.errors import RlpipeError, check, check_choice, check_fields
-from rlpipe.planning import ActionCoder, Planner, WorldModel
+from rlpipe.algos.base import EnvAlgorithm, Metrics, episode_metrics, make_collector
+from rlpipe.algos.mbrl.planning import ActionCoder, Planner, WorldModel
+from rlpipe.config import AlgoConfig, checked
+from rlpipe.envs import is_discrete, num_actions, observation_size
+from rlpipe.errors import RlpipeError, check
 
 PLANNERS = ("cem", "random")
 MODEL_LOSS = "train/model_loss"  # the models' mean training loss over a fit
@@ -34,53 +33,36 @@ class MBRLConfig(AlgoConfig):
     eval_every: int = 2_000  # every greedy eval step plans (eval_episodes x episode length)
     checkpoint_every: int = 5_000
     # models
-    ensemble_size: int = 5  # dynamics MLPs, each fitted on its own minibatches
-    hidden_sizes: list[int] = field(default_factory=lambda: [64, 64])
-    lr: float = 1e-3
-    weight_decay: float = 1e-4
-    batch_size: int = 256
-    fit_steps: int = 200  # Adam steps on the models after each collected batch
-    validation_fraction: float = 0.1  # transitions held out for the logged validation losses
-    buffer_size: int = 100_000
+    ensemble_size: int = checked(5, "at_least_one")  # dynamics MLPs, each on its own minibatches
+    hidden_sizes: list[int] = checked([64, 64], "sizes")
+    lr: float = checked(1e-3, "positive")
+    weight_decay: float = checked(1e-4, "non_negative")
+    batch_size: int = checked(256, "at_least_one")
+    fit_steps: int = checked(200, "at_least_one")  # Adam steps on the models after each batch
+    # transitions held out for the logged validation losses
+    validation_fraction: float = checked(0.1, "fraction")
+    buffer_size: int = checked(100_000, "at_least_one")
     # loop
-    warmup_frames: int = 400  # uniformly random actions before the first fit
-    frames_per_batch: int = 200  # env frames collected between two fits
+    warmup_frames: int = checked(
+        400, "non_negative"
+    )  # uniformly random actions before the first fit
+    frames_per_batch: int = checked(200, "at_least_one")  # env frames collected between two fits
     # planner
-    planner: str = "cem"  # cem | random (random shooting)
-    horizon: int = 15
-    num_candidates: int = 100
-    cem_iterations: int = 5  # CEM rounds (random shooting: 1)
+    planner: str = checked("cem", choices=PLANNERS)  # cem | random (random shooting)
+    horizon: int = checked(15, "at_least_one")
+    num_candidates: int = checked(100, "at_least_one")
+    cem_iterations: int = checked(5, "at_least_one")  # CEM rounds (random shooting: 1)
     elites: int = 10
-    gamma: float = 0.99
-    init_std: float = 0.5  # CEM's first std, in units of half the action range
+    gamma: float = checked(0.99, "discount")
+    init_std: float = checked(0.5, "positive")  # CEM's first std, in half action ranges
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        check_fields(
-            self,
-            "algo.",
-            positive=("lr", "init_std"),
-            non_negative=("weight_decay", "warmup_frames"),
-            at_least_one=(
-                "ensemble_size",
-                "horizon",
-                "num_candidates",
-                "cem_iterations",
-                "batch_size",
-                "fit_steps",
-                "buffer_size",
-                "frames_per_batch",
-            ),
-            discount=("gamma",),
-            fraction=("validation_fraction",),
-            sizes=("hidden_sizes",),
-        )
         check(
             1 <= self.elites <= self.num_candidates,
             f"algo.elites must be in [1, algo.num_candidates={self.num_candidates}], "
             f"got {self.elites}",
         )
-        check_choice(self.planner, "algo.planner", PLANNERS)
 
 
 def action_coder(env: EnvBase, device: torch.device) -> ActionCoder:
@@ -142,7 +124,7 @@ _STORED_KEYS = (
 )
 
 
-class MBRL:
+class MBRL(EnvAlgorithm):
     """Model-based RL on a batched TorchRL env, discrete or bounded continuous actions.
 
     Each :meth:`train_step` collects ``cfg.frames_per_batch`` frames with the MPC planner
@@ -155,19 +137,12 @@ class MBRL:
     ``cem_iterations × horizon`` batched model steps over (eval envs × candidates × members) rows.
     """
 
+    cfg: MBRLConfig
     finite_keys = (MODEL_LOSS,)
+    state_attrs = ("model", "optimizer", "buffer", "fit_generator", "plan_generator")
 
-    def __init__(
-        self, env_factory: EnvFactory, cfg: MBRLConfig, *, device: str | torch.device = "cpu"
-    ):
-        with closing_on_error(env_factory()) as env:
-            self._build(env, cfg, torch.device(device))
-
-    def _build(self, env: EnvBase, cfg: MBRLConfig, device: torch.device) -> None:
-        self.cfg = cfg
-        self.device = device
-        self.frames = self.iterations = 0
-        self.budget = None  # frames only: the run's total_frames
+    def _build(self, env: EnvBase) -> None:
+        cfg, device = self.cfg, self.device
         coder = action_coder(env, self.device)
         self.model = WorldModel(
             observation_size(env), coder.size, cfg.hidden_sizes, cfg.ensemble_size
@@ -186,7 +161,8 @@ class MBRL:
         # the generators this algorithm owns, seeded from the global one (seed_everything)
         seeds = torch.randint(2**62, (2,)).tolist()
         self.fit_generator = torch.Generator().manual_seed(seeds[0])
-        self.mpc = MPCPolicy(planner, torch.Generator().manual_seed(seeds[1]))
+        self.plan_generator = torch.Generator().manual_seed(seeds[1])
+        self.mpc = MPCPolicy(planner, self.plan_generator)
         self.mpc.warmup = cfg.warmup_frames > 0
         self.policy = TensorDictModule(self.mpc, in_keys=["observation"], out_keys=["action"])
         self.optimizer = torch.optim.Adam(
@@ -257,25 +233,7 @@ class MBRL:
             data["next", "terminated"].squeeze(-1),
         )
 
-    def state_dict(self) -> dict[str, Any]:
-        return {
-            "model": self.model.state_dict(),
-            "optimizer": self.optimizer.state_dict(),
-            "buffer": self.buffer.state_dict(),
-            "frames": self.frames,
-            "iterations": self.iterations,
-            "fit_generator": self.fit_generator.get_state(),
-            "plan_generator": self.mpc.generator.get_state(),
-        }
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        self.model.load_state_dict(state["model"])
-        self.optimizer.load_state_dict(state["optimizer"])
-        self.buffer.load_state_dict(state["buffer"])
-        self.frames = int(state["frames"])
-        self.iterations = int(state["iterations"])
-        self.fit_generator.set_state(state["fit_generator"])
-        self.mpc.generator.set_state(state["plan_generator"])
+    def _restored(self) -> None:
         self.mpc.warmup = self.frames < self.cfg.warmup_frames
 
     def close(self) -> None:

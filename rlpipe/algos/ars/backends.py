@@ -1,0 +1,319 @@
+"""Where an ARS iteration's rollouts run: this process, worker processes, or Ray actors.
+
+Every backend rolls out the population's members (flat parameter vectors and episode seeds) on
+:class:`Rollouts` units and returns their results; with several workers the population is cut
+into chunks that the workers pull as they free up (episode lengths vary a lot), each rolling
+out its chunk as one batch to the end and sending back only returns and observation statistics.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import signal
+import socket
+from dataclasses import dataclass
+from multiprocessing.connection import wait
+from typing import Any, Protocol
+
+import cloudpickle
+import torch
+from tensordict.nn import TensorDictModuleBase
+
+from rlpipe.algos.ars.rollout import RolloutResult, Rollouts
+from rlpipe.envs import EnvFactory
+from rlpipe.errors import RlpipeError, check
+
+__all__ = ["BACKENDS", "RAY_INSTALL", "Backend", "Shares", "start_backend"]
+
+BACKENDS = ("local", "ray")
+CHUNKS_PER_WORKER = 8
+RAY_INSTALL = 'pip install "rlpipe[ray]"'
+RAY_PORT = 6379  # the port of a Ray head's GCS when an address names none
+
+# what a backend's roll_out returns: (member indices, their result) pairs covering the population
+Shares = list[tuple[torch.Tensor, RolloutResult]]
+
+
+class Backend(Protocol):
+    def roll_out(self, flat: torch.Tensor, seeds: torch.Tensor) -> Shares:
+        """Roll out member ``i`` with parameters ``flat[i]`` from episode seed ``seeds[i]``."""
+        ...
+
+    def close(self) -> None: ...
+
+
+def start_backend(
+    policy: TensorDictModuleBase,
+    env_factory: EnvFactory,
+    population: int,
+    *,
+    backend: str,
+    workers: int,
+    seed: int,
+    options: dict[str, Any],
+    ray_address: str | None = None,
+    ray_num_cpus: int | None = None,
+) -> Backend:
+    """Build the env copies (and start the workers) that roll out ``population`` members.
+
+    ``"local"``: ``workers`` processes on this machine (1: this process, as one batch; 0: one
+    per core); ``"ray"``: ``workers`` Ray actors (0: one per CPU of the cluster). Worker ``w``
+    builds its envs with ``seed + w``; ``options`` are :func:`rollout`'s keyword arguments.
+    """
+    units = _Units(policy, env_factory, seed, options)
+    if backend == "ray":
+        return _RayActors(units, population, workers, address=ray_address, num_cpus=ray_num_cpus)
+    workers = min(workers or os.cpu_count() or 1, population)
+    if workers == 1:
+        return _InProcess(Rollouts(*units.args(0, population)), population)
+    return _Processes(units, population, workers)
+
+
+@dataclass
+class _Units:
+    """What each worker's :class:`Rollouts` is built from (worker ``w``'s envs: ``seed + w``)."""
+
+    policy: TensorDictModuleBase
+    env_factory: EnvFactory
+    seed: int
+    options: dict[str, Any]
+
+    def args(self, worker: int, num_envs: int) -> tuple[Any, ...]:
+        """``Rollouts``' arguments for ``worker``, with ``num_envs`` env copies."""
+        return self.policy, self.env_factory, num_envs, self.seed + worker, self.options
+
+
+class _InProcess:
+    """The rollout backend that steps the whole population as one batch in this process."""
+
+    def __init__(self, rollouts: Rollouts, population: int) -> None:
+        self.rollouts, self.members = rollouts, torch.arange(population)
+
+    def roll_out(self, flat: torch.Tensor, seeds: torch.Tensor) -> Shares:
+        return [(self.members, self.rollouts.run(None, flat, seeds.tolist()))]
+
+    def close(self) -> None:
+        self.rollouts.close()
+
+
+class _Pool:
+    """A rollout backend of workers that pull chunks of the population as they free up.
+
+    Episode lengths are heavy-tailed, so each worker takes small chunks (about eight per worker
+    and iteration) rather than owning a fixed share; one worker takes everything as one chunk.
+    A chunk carries its members' parameters and episode seeds, and the policy's state (the
+    normaliser changes every iteration) when it is the worker's first of the iteration, all as
+    NumPy arrays; only its :class:`RolloutResult` comes back. Subclasses fill
+    ``workers`` and say how a chunk is sent to a worker (:meth:`_submit`, returning a handle), how
+    to wait until some handles are done (:meth:`_wait`) and how to collect one (:meth:`_collect`).
+    """
+
+    def __init__(self, units: _Units, population: int, workers: int) -> None:
+        self.policy = units.policy
+        self.chunk_size = (
+            -(-population // (CHUNKS_PER_WORKER * workers)) if workers > 1 else population
+        )
+        self.chunks = list(torch.arange(population).split(self.chunk_size))
+        self.workers: list[Any] = []
+
+    def roll_out(self, flat: torch.Tensor, seeds: torch.Tensor) -> Shares:
+        state = {key: value.numpy() for key, value in self.policy.state_dict().items()}
+        flat_np = flat.numpy()
+        pending = list(range(len(self.chunks)))
+        results: list[Any] = [None] * len(self.chunks)
+        busy: dict[Any, tuple[int, Any]] = {}  # handle -> (chunk index, worker)
+        updated: set[int] = set()  # workers that have this iteration's policy state
+
+        def give(worker: Any) -> None:
+            if pending:
+                index = pending.pop(0)
+                members = self.chunks[index]
+                fresh = id(worker) not in updated
+                updated.add(id(worker))
+                handle = self._submit(
+                    worker,
+                    state if fresh else None,
+                    flat_np[members.numpy()],
+                    seeds[members].tolist(),
+                )
+                busy[handle] = index, worker
+
+        for worker in self.workers:
+            give(worker)
+        while busy:
+            for handle in self._wait(list(busy)):
+                index, worker = busy.pop(handle)
+                results[index] = self._collect(handle)
+                give(worker)
+        return list(zip(self.chunks, results))
+
+    def _submit(self, worker: Any, *message: Any) -> Any:
+        raise NotImplementedError
+
+    def _wait(self, handles: list[Any]) -> list[Any]:
+        raise NotImplementedError
+
+    def _collect(self, handle: Any) -> RolloutResult:
+        raise NotImplementedError
+
+
+class _Processes(_Pool):
+    """Worker processes on this machine, one pipe each."""
+
+    def __init__(self, units: _Units, population: int, workers: int) -> None:
+        super().__init__(units, population, workers)
+        ctx = mp.get_context(_start_method())
+        self._procs: list[Any] = []
+        for w in range(workers):
+            parent, child = ctx.Pipe()
+            payload = cloudpickle.dumps(units.args(w, self.chunk_size))
+            proc = ctx.Process(target=_worker, args=(child, payload), daemon=True)
+            proc.start()
+            child.close()
+            self.workers.append(parent)
+            self._procs.append(proc)
+        for conn in self.workers:
+            conn.recv()  # wait until every worker has built its envs
+
+    def _submit(self, worker: Any, *message: Any) -> Any:
+        worker.send(message)
+        return worker
+
+    def _wait(self, handles: list[Any]) -> list[Any]:
+        return wait(handles)
+
+    def _collect(self, handle: Any) -> RolloutResult:
+        return handle.recv()
+
+    def close(self) -> None:
+        for conn in self.workers:
+            conn.send(None)
+            conn.close()
+        for proc in self._procs:
+            proc.join(timeout=10)
+        self.workers, self._procs = [], []
+
+
+def _worker(conn: Any, payload: bytes) -> None:
+    # Ctrl-C reaches the whole process group: the parent checkpoints and stops the workers
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    torch.set_num_threads(1)
+    rollouts = Rollouts(*cloudpickle.loads(payload))
+    conn.send(None)  # ready
+    try:
+        while (message := conn.recv()) is not None:
+            conn.send(rollouts.run(*message))
+    except (EOFError, BrokenPipeError):  # the parent exited (or was killed) without close()
+        pass
+    finally:
+        rollouts.close()
+
+
+def _start_method() -> str:
+    """``fork`` where it is safe (a worker is up at once), else ``spawn``.
+
+    ``spawn`` re-imports torch and TorchRL in every worker; ``fork`` cannot be used once CUDA
+    is initialised in this process.
+    """
+    if "fork" in mp.get_all_start_methods() and not torch.cuda.is_initialized():
+        return "fork"
+    return "spawn"
+
+
+class _RayActors(_Pool):
+    """Ray actors of one CPU each, on this machine or anywhere in a Ray cluster.
+
+    Each actor is a :class:`Rollouts` holding its own env copies; ``workers`` 0 starts one per
+    CPU of the cluster.
+    """
+
+    def __init__(
+        self,
+        units: _Units,
+        population: int,
+        workers: int,
+        *,
+        address: str | None,
+        num_cpus: int | None,
+    ) -> None:
+        self._owns_ray = _connect_ray(address, num_cpus)
+        import ray
+
+        self._ray = ray
+        cpus = int(ray.cluster_resources().get("CPU", 0))
+        workers = min(workers or cpus, population)
+        super().__init__(units, population, max(workers, 1))
+        try:
+            check(
+                1 <= workers <= cpus,
+                f"{workers} Ray workers need as many CPUs, but the Ray cluster has {cpus}",
+            )
+            actor = ray.remote(num_cpus=1)(Rollouts)
+            self.workers = [actor.remote(*units.args(w, self.chunk_size)) for w in range(workers)]
+            # every actor has built its envs (ray.get raises the error of one that could not)
+            ray.get([worker.__ray_ready__.remote() for worker in self.workers])
+        except BaseException:
+            self.close()
+            raise
+
+    def _submit(self, worker: Any, *message: Any) -> Any:
+        return worker.run.remote(*message)
+
+    def _wait(self, handles: list[Any]) -> list[Any]:
+        return self._ray.wait(handles, num_returns=1)[0]
+
+    def _collect(self, handle: Any) -> RolloutResult:
+        return self._ray.get(handle)
+
+    def close(self) -> None:
+        for worker in self.workers:
+            self._ray.kill(worker)
+        self.workers = []
+        if self._owns_ray and self._ray.is_initialized():
+            self._ray.shutdown()
+
+
+def _connect_ray(address: str | None, num_cpus: int | None) -> bool:
+    """Start Ray here (``address`` None, ``num_cpus`` CPUs) or join the cluster at ``address``.
+
+    Returns whether this call initialised Ray (and so should shut it down); a Ray the caller
+    already initialised is used as it is.
+    """
+    try:
+        import ray
+    except ImportError as err:
+        raise RlpipeError(f"the Ray backend needs Ray; install it with: {RAY_INSTALL}") from err
+    if ray.is_initialized():
+        return False
+    if address not in (None, "auto"):
+        _check_reachable(address)
+    try:
+        ray.init(
+            address=address,
+            num_cpus=num_cpus if address is None else None,
+            include_dashboard=False,
+            log_to_driver=False,
+        )
+    except ConnectionError as err:
+        message = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise RlpipeError(f"cannot connect to Ray at {address}: {message}") from err
+    return True
+
+
+def _check_reachable(address: str) -> None:
+    """Fail in one line, within seconds, when nothing listens at a ``host:port`` Ray address.
+
+    ``ray.init`` would retry an unreachable address for minutes.
+    """
+    host, _, port = address.removeprefix("ray://").rpartition(":")
+    if not host:
+        host, port = port, str(RAY_PORT)
+    check(port.isdigit(), f"Ray address {address!r} must be host:port, ray://host:port or auto")
+    try:
+        socket.create_connection((host, int(port)), timeout=5).close()
+    except OSError as err:
+        raise RlpipeError(
+            f"cannot reach a Ray cluster at {address} ({err.strerror or err}); start one with "
+            "`ray start --head` there, or fix the address"
+        ) from err

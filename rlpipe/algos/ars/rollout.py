@@ -1,0 +1,169 @@
+"""Population rollouts: one episode per member, stepping the gymnasium copies directly.
+
+A finished copy is not stepped again, and TorchRL's per-step overhead is skipped: the loop
+steps the envs under a :func:`rlpipe.make_env` env (and under their bookkeeping wrappers) and
+calls the policy as a :class:`PopulationPolicy` on plain NumPy arrays.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, fields
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+from tensordict.nn import TensorDictModuleBase
+
+from rlpipe.algos.ars.population import PopulationPolicy
+from rlpipe.envs import EnvFactory, sub_envs
+from rlpipe.normalizer import batch_stats
+
+__all__ = ["RolloutResult", "Rollouts", "rollout"]
+
+
+@torch.inference_mode()
+def rollout(
+    policy: TensorDictModuleBase,
+    envs: Sequence[gym.Env],
+    flat: torch.Tensor,
+    seeds: Sequence[int] | None = None,
+    *,
+    max_steps: int,
+    reward_offset: float = 0.0,
+    reward_clip: float | None = None,
+) -> RolloutResult:
+    """One episode per member: ``envs[i]``, reset with ``seeds[i]``, runs parameters ``flat[i]``.
+
+    Every step calls the policy once on the observations of the members still running (a
+    :class:`PopulationPolicy` on a plain dict of NumPy arrays: a TensorDict per step would
+    cost more than the policy itself); finished copies are not stepped again. An episode ends
+    at ``max_steps`` or the env's own time limit, whichever comes first.
+    Training rewards are ``clip(r + reward_offset, -reward_clip, reward_clip)``.
+    """
+    cpu = time.process_time()
+    size = len(envs)
+    seeds = [None] * len(envs) if seeds is None else seeds
+    inner = [_inner_env(env) for env in envs]
+    steps = [env.step for env, _ in inner]
+    limits = [max_steps if limit is None else min(limit, max_steps) for _, limit in inner]
+    obs = np.stack([env.reset(seed=seed)[0] for (env, _), seed in zip(inner, seeds)])
+    obs = obs.astype(np.float32)
+    returns, raw_returns, lengths = [0.0] * size, [0.0] * size, [0] * size
+    low, high = (-math.inf, math.inf) if reward_clip is None else (-reward_clip, reward_clip)
+    running = list(range(size))  # the member of each row of obs: those still in their episode
+    forward = PopulationPolicy(policy, flat)
+    seen = []
+    for _ in range(max_steps):
+        seen.append(obs)
+        actions = forward.outputs({"observation": obs})["action"]
+        obs, still = np.empty_like(obs), []
+        for row, (i, action) in enumerate(zip(running, actions)):
+            obs[row], reward, terminated, truncated, _ = steps[i](action)
+            raw_returns[i] += reward
+            returns[i] += min(max(reward + reward_offset, low), high)
+            lengths[i] += 1
+            if not (terminated or truncated) and lengths[i] < limits[i]:
+                still.append(row)
+        if not still:
+            break
+        if len(still) < len(running):  # rows (and parameters) of finished members drop out
+            obs, running = obs[still], [running[row] for row in still]
+            forward = PopulationPolicy(policy, flat[running])
+    count, mean, m2 = batch_stats(torch.from_numpy(np.concatenate(seen)))
+    return RolloutResult(
+        torch.tensor(returns, dtype=torch.float64),
+        torch.tensor(raw_returns, dtype=torch.float64),
+        torch.tensor(lengths),
+        time.process_time() - cpu,
+        count,
+        mean,
+        m2,
+    )
+
+
+@dataclass
+class RolloutResult:
+    """Per-member returns of one population rollout and the statistics of what it observed."""
+
+    returns: torch.Tensor  # shaped (offset, clipped) returns, what the update ranks
+    raw_returns: torch.Tensor  # the env's own returns
+    lengths: torch.Tensor
+    cpu_seconds: float  # CPU time of the process that rolled out
+    obs_count: int
+    obs_mean: torch.Tensor
+    obs_m2: torch.Tensor
+
+    def __reduce__(self) -> tuple[Any, tuple[Any, ...]]:
+        # pickled as NumPy arrays: on a multiprocessing pipe torch's own reducer would move every
+        # tensor through a new shared-memory file
+        return _rollout_result, tuple(_numpy(getattr(self, f.name)) for f in fields(self))
+
+
+def _numpy(value: Any) -> Any:
+    return value.numpy() if isinstance(value, torch.Tensor) else value
+
+
+def _rollout_result(*values: Any) -> RolloutResult:
+    return RolloutResult(*(torch.as_tensor(v) if isinstance(v, np.ndarray) else v for v in values))
+
+
+# wrappers that only check call order or count steps: a rollout steps the env inside them
+# and ends the episode at the time limit itself
+_BOOKKEEPING_WRAPPERS = (
+    gym.wrappers.TimeLimit,
+    gym.wrappers.OrderEnforcing,
+    gym.wrappers.PassiveEnvChecker,
+)
+
+
+def _inner_env(env: gym.Env) -> tuple[gym.Env, int | None]:
+    """The env under ``env``'s bookkeeping wrappers and its time limit (when only those wrap it).
+
+    Every wrapper layer adds a Python call per step; an env with any other wrapper is stepped
+    as is.
+    """
+    limit, inner = None, env
+    while isinstance(inner, _BOOKKEEPING_WRAPPERS):
+        if isinstance(inner, gym.wrappers.TimeLimit):
+            limit = inner._max_episode_steps
+        inner = inner.env
+    return (inner, limit) if not isinstance(inner, gym.Wrapper) else (env, None)
+
+
+class Rollouts:
+    """A share of the population: its env copies and the policy, stepped in one process.
+
+    Every backend's unit of work (:mod:`rlpipe.algos.ars.backends`): used in this process, in
+    each worker process, and as the Ray actor class (each actor builds its own env copies from
+    ``env_factory(num_envs=..., seed=...)``).
+    """
+
+    def __init__(
+        self,
+        policy: TensorDictModuleBase,
+        env_factory: EnvFactory,
+        num_envs: int,
+        seed: int,
+        options: dict[str, Any],
+    ) -> None:
+        self.policy, self.options = policy, options
+        self.env = env_factory(num_envs=num_envs, seed=seed)
+        self.envs = sub_envs(self.env)
+
+    def run(
+        self, state: dict[str, Any] | None, flat: torch.Tensor | np.ndarray, seeds: list[int]
+    ) -> RolloutResult:
+        """Roll out ``flat``'s members, after loading the policy ``state`` when one is given
+        (tensors or NumPy arrays: the worker backends send arrays, which pickle fast)."""
+        if state is not None:
+            self.policy.load_state_dict({key: torch.as_tensor(v) for key, v in state.items()})
+        flat = torch.as_tensor(flat)
+        return rollout(self.policy, self.envs[: len(flat)], flat, seeds, **self.options)
+
+    def close(self) -> None:
+        if not self.env.is_closed:
+            self.env.close()

@@ -1,0 +1,94 @@
+"""What a run records besides its metrics, as :class:`Callback` hooks on the :class:`Runner`:
+videos of greedy episodes, ``curve.png``, and closing the logger."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import torch
+
+from rlpipe.config import Config, EnvConfig
+from rlpipe.episodes import EvalResult
+from rlpipe.figures import plot_run
+from rlpipe.loggers import require_extra, takes_video
+from rlpipe.video import frame_rate, make_render_env, record_episode, write_mp4
+
+if TYPE_CHECKING:  # the runner calls these hooks
+    from rlpipe.runner import Runner, RunResult
+
+VIDEO_DIR = "videos"
+
+
+class Callback:
+    """Hooks into a :class:`~rlpipe.runner.Runner`: override the ones you need (all do nothing
+    by default)."""
+
+    def on_eval(self, runner: Runner, result: EvalResult) -> None:
+        """After each greedy evaluation (``runner.algo.frames`` frames in)."""
+
+    def on_end(self, runner: Runner, result: RunResult) -> None:
+        """After the final evaluation and checkpoint, before ``run`` returns."""
+
+
+class VideoCallback(Callback):
+    """Records one greedy episode to ``<run dir>/videos/eval_<frames>.mp4`` at evaluations.
+
+    At the first evaluation past each multiple of ``every`` frames (1: every evaluation), and
+    always after the final one. TensorBoard and W&B loggers get the video too.
+    """
+
+    def __init__(self, env_cfg: EnvConfig, every: int, seed: int | None = None) -> None:
+        require_extra("video", "video=true")
+        self.env = make_render_env(env_cfg, seed=seed)
+        self.every = every
+        self.next_due = every
+        self.last_frames = -1
+
+    def on_eval(self, runner: Runner, result: EvalResult) -> None:
+        if runner.algo.frames >= self.next_due:
+            self.record(runner)
+            self.next_due = (runner.algo.frames // self.every + 1) * self.every
+
+    def on_end(self, runner: Runner, result: RunResult) -> None:
+        if self.last_frames != runner.algo.frames:
+            self.record(runner)
+        self.env.close()
+
+    def record(self, runner: Runner) -> Path:
+        """Record, write and log one episode of the runner's current greedy policy."""
+        frames = record_episode(runner.algo.policy, self.env)
+        self.last_frames = runner.algo.frames
+        name = f"eval_{runner.algo.frames:012d}.mp4"
+        path = write_mp4(frames, runner.run_dir / VIDEO_DIR / name, frame_rate(self.env))
+        if takes_video(runner.logger):
+            video = torch.from_numpy(frames).permute(0, 3, 1, 2).unsqueeze(0)  # N T C H W
+            runner.logger.log_video(
+                "eval/video", video, step=runner.algo.frames, fps=frame_rate(self.env)
+            )
+        return path
+
+
+class CurveCallback(Callback):
+    """Draws ``curve.png`` into the run dir when the run ends."""
+
+    def on_end(self, runner: Runner, result: RunResult) -> None:
+        plot_run(runner.run_dir)
+
+
+class CloseLogger(Callback):
+    """Flushes and closes the runner's logger when the run ends (W&B/MLflow runs finish)."""
+
+    def on_end(self, runner: Runner, result: RunResult) -> None:
+        if runner.logger is not None:
+            runner.logger.shutdown()
+
+
+def make_callbacks(cfg: Config) -> list[Callback]:
+    """What ``train`` records besides metrics: videos (``cfg.video``), ``curve.png``."""
+    callbacks: list[Callback] = []
+    if cfg.video:
+        callbacks.append(VideoCallback(cfg.env, int(cfg.video), seed=cfg.seed + 20_000))
+    if cfg.logger.backend != "none":
+        callbacks.append(CurveCallback())
+    return [*callbacks, CloseLogger()]

@@ -1,0 +1,55 @@
+"""Process-wide runtime settings a run needs: device, seeds, torch threads, RNG state."""
+
+from __future__ import annotations
+
+import random
+from typing import Any
+
+import numpy as np
+import torch
+
+from rlpipe.errors import RlpipeError
+
+
+def resolve_device(name: str) -> torch.device:
+    """``auto`` -> cuda when available, else cpu; anything else must be a valid torch device."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(name)
+    except RuntimeError as err:
+        raise RlpipeError(f"device must be auto, cpu, cuda or cuda:N; got {name!r}") from err
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise RlpipeError(f"device={name} asked for, but no CUDA device is available; use auto")
+    return device
+
+
+def seed_everything(seed: int) -> None:
+    """Seed Python's, NumPy's and torch's global generators."""
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+def set_threads(threads: int) -> None:
+    """Use ``threads`` torch intra-op threads (0: leave torch's default)."""
+    if threads:
+        torch.set_num_threads(threads)
+
+
+def rng_state() -> dict[str, Any]:
+    """Python's, NumPy's and torch's global generator states, as checkpoint-safe containers."""
+    kind, keys, pos, has_gauss, cached = np.random.get_state()
+    return {
+        "python": random.getstate(),
+        "numpy": [kind, torch.from_numpy(keys.astype(np.int64)), pos, has_gauss, cached],
+        "torch": torch.get_rng_state(),
+    }
+
+
+def set_rng_state(state: dict[str, Any]) -> None:
+    """Restore what :func:`rng_state` captured."""
+    random.setstate(state["python"])
+    kind, keys, pos, has_gauss, cached = state["numpy"]
+    np.random.set_state((kind, keys.numpy().astype(np.uint32), pos, has_gauss, cached))
+    torch.set_rng_state(state["torch"])
