@@ -20,6 +20,7 @@ import gymnasium as gym
 import numpy as np
 from common import budget_parser, compose_config, machine, publish, read_scalar, table
 
+from rlpipe.config import RUN_KEYS
 from rlpipe.pipeline import train
 
 TARGET = 500.0
@@ -154,7 +155,7 @@ def main() -> None:
             + (f"{np.mean(ratios):.2f}" if ratios else "–")
             + " over the seeds both reached. rlpipe preset: "
             + f"num_envs={ours['config'].env.num_envs}, "
-            + ", ".join(f"{k}={v}" for k, v in algo.items() if k != "name"),
+            + ", ".join(f"{k}={v}" for k, v in algo.items() if k not in ("name", *RUN_KEYS)),
         ]
     )
     publish(report, args.append)

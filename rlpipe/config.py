@@ -8,6 +8,7 @@ or a value of the wrong type fails at start-up naming the key, and value checks 
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterable
 from dataclasses import dataclass, field, fields, replace
 from typing import Any
@@ -124,12 +125,20 @@ class Config:
     keep_checkpoints: int = checked(3, "at_least_one")
     progress: bool = True
     video: Any = False  # false | true (every evaluation) | N (every N frames); always at the end
-    threads: int = checked(0, "non_negative")  # torch intra-op threads; 0: torch's default
+    # torch intra-op threads: auto (1 on CPU: small networks gain nothing from more, and idle
+    # OpenMP threads spin against every other process), N, or 0 (torch's default: one per core)
+    threads: Any = "auto"
     resume: str | None = None  # a run dir to continue from its last good checkpoint
 
     def __post_init__(self) -> None:
         check_run_keys(self, "")
         check_rules(self, "")
+        cores = os.cpu_count() or 1
+        check(
+            self.threads == "auto" or (type(self.threads) is int and 0 <= self.threads <= cores),
+            f"threads must be auto or a number from 0 (torch's default) to {cores} (the cores "
+            f"here), got {self.threads!r}",
+        )
         check(
             isinstance(self.video, bool) or (isinstance(self.video, int) and self.video >= 0),
             f"video must be true, false or a frame cadence N >= 1, got {self.video!r}",

@@ -38,7 +38,7 @@ def train(cfg: Config, run_dir: str | Path) -> RunResult:
         state = resume_state(cfg, run_dir, required=bool(cfg.resume))
     frames = state["frames"] if state else 0
     seed_everything(cfg.seed)
-    set_threads(cfg.threads)
+    set_threads(cfg.threads, device)
     eval_env = make_env(cfg.env, num_envs=eval_envs(cfg.eval_episodes), seed=cfg.seed + 10_000)
     try:  # a resumed run meets fresh episodes: the seed moves with the frames
         algo = make_algorithm(

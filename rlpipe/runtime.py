@@ -31,8 +31,12 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
-def set_threads(threads: int) -> None:
-    """Use ``threads`` torch intra-op threads (0: leave torch's default)."""
+def set_threads(threads: int | str, device: torch.device) -> None:
+    """Set torch's intra-op threads: ``"auto"`` is 1 on a CPU device (the networks here are
+    small: more threads only contend with other processes) and torch's default elsewhere;
+    ``0`` leaves torch's default (one per core); ``N`` uses N."""
+    if threads == "auto":
+        threads = 1 if device.type == "cpu" else 0
     if threads:
         torch.set_num_threads(threads)
 

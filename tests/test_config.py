@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
+import torch
 from hydra import compose, initialize_config_module
 from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
@@ -14,6 +16,7 @@ from rlpipe.cli import register_configs, to_config
 from rlpipe.config import RUN_KEYS, Config, EnvConfig, LoggerConfig
 from rlpipe.errors import RlpipeError
 from rlpipe.pipeline import train
+from rlpipe.runtime import set_threads
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
 register_configs()
@@ -108,6 +111,9 @@ def test_added_keys_are_refused(override):
         ("algo.buffer_size=10", "buffer_size"),
         ("algo.eps_schedule=cosine", "eps_schedule"),
         ("logger.backend=x", "logger.backend"),
+        ("threads=-1", "threads must be auto or a number from 0"),
+        (f"threads={(os.cpu_count() or 1) + 1}", "threads must be auto or a number from 0"),
+        ("threads=many", "threads must be auto or a number from 0"),
     ],
 )
 def test_bad_values_fail_with_a_named_key(override, message):
@@ -163,3 +169,17 @@ def test_python_one_liner_runs_with_the_algorithms_budget(tmp_path):
     result = train(Config(env=EnvConfig(id="Acrobot-v1"), algo=short, progress=False), tmp_path)
     assert result.frames == 300
     assert OmegaConf.load(tmp_path / "config.yaml").total_frames == 300  # resolved, recorded
+
+
+@pytest.mark.parametrize(
+    "threads, device, expected",
+    [("auto", "cpu", 1), ("auto", "meta", None), (2, "cpu", 2), (0, "cpu", None)],
+)
+def test_threads_auto_is_one_on_cpu(threads, device, expected):
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(3)
+        set_threads(threads, torch.device(device))
+        assert torch.get_num_threads() == (expected or 3)  # None: torch's setting untouched
+    finally:
+        torch.set_num_threads(before)

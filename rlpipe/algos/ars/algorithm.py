@@ -115,10 +115,11 @@ class ARS:
         return {f"train/{key}": value for key, value in stats.items()}
 
     def state_dict(self) -> dict[str, Any]:
-        return {"search": self.search.state_dict(), "frames": self.frames}
+        # the search's keys beside frames: the layout ARS checkpoints have always had
+        return {**self.search.state_dict(), "frames": self.frames}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        self.search.load_state_dict(state["search"])
+        self.search.load_state_dict(state)
         self.frames = int(state["frames"])
 
     def close(self) -> None:
