@@ -27,7 +27,6 @@ RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
     "non_negative": (lambda v: math.isfinite(v) and v >= 0, "must be >= 0"),
     "discount": (lambda v: 0 < v <= 1, "must be in (0, 1]"),
     "fraction": (lambda v: 0 <= v < 1, "must be in [0, 1)"),
-    "unit": (lambda v: 0 <= v <= 1, "must be in [0, 1]"),
     "sizes": (lambda v: all(h >= 1 for h in v), "must be positive"),
     "optional_at_least_one": (lambda v: v is None or v >= 1, "must be >= 1 or null"),
 }
