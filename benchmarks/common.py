@@ -153,7 +153,7 @@ def time_ars(seed: int, iterations: int, *overrides: str) -> dict:
     try:
         start, cpu = time.perf_counter(), 0.0
         for _ in range(iterations):
-            cpu += algo.train_step()["train/rollout_cpu_seconds"]
+            cpu += algo.train_step()["time/rollout_cpu_seconds"]
         return {
             "steps": algo.frames,
             "seconds": time.perf_counter() - start,

@@ -3,14 +3,26 @@
 from __future__ import annotations
 
 import logging
+import re
 import sys
+from functools import partial
+from pathlib import Path
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig
 
-from rlpipe.cli import USER_ERRORS, fail, register_configs, run_cli, to_config
+from rlpipe.cli import (
+    USER_ERRORS,
+    fail,
+    register_configs,
+    run_cli,
+    to_config,
+    validate_overrides,
+    write_hydra_record,
+)
+from rlpipe.errors import check
 from rlpipe.pipeline import train
 from rlpipe.runner import RunResult
 from rlpipe.sweep import SweepSummary, run_sweep_job
@@ -24,11 +36,13 @@ def _hydra_main(cfg: DictConfig) -> float | None:
     run_dir = hydra_cfg.runtime.output_dir
 
     def job() -> RunResult:
-        return train(to_config(cfg), run_dir)
+        return train(to_config(cfg), run_dir, on_start=partial(write_hydra_record, job_cfg=cfg))
 
     if hydra_cfg.mode == RunMode.MULTIRUN:
         # exiting would end the whole sweep: the failure is recorded and the other jobs run
-        result = run_sweep_job(job, run_dir)
+        record = partial(write_hydra_record, job_cfg=cfg)
+        rejected = Path(hydra_cfg.sweep.dir) / "rejected" / str(hydra_cfg.job.num)
+        result = run_sweep_job(job, run_dir, record=record, rejected_dir=rejected)
         if result is None:
             return None  # a failed trial for sweepers (Optuna)
     else:
@@ -40,9 +54,27 @@ def _hydra_main(cfg: DictConfig) -> float | None:
     return result.eval_mean  # what Hydra sweepers optimise
 
 
+def resume_in_place(argv: list[str]) -> list[str]:
+    """``resume=<dir>`` runs in ``<dir>`` (no new ``outputs/<date>/<time>``) unless
+    ``hydra.run.dir`` is given or it is a sweep."""
+    resume = [arg.partition("=")[2] for arg in argv if re.match(r"^\+{0,2}resume=", arg)]
+    if not resume or resume[-1] in ("", "null") or {"-m", "--multirun"} & set(argv):
+        return argv
+    if any(arg.startswith("hydra.run.dir=") for arg in argv):
+        return argv
+    check(Path(resume[-1]).is_dir(), f"run directory {resume[-1]} does not exist")
+    return [*argv, f"hydra.run.dir={resume[-1]}"]
+
+
 def main() -> None:
     """Console entry point (also ``rlpipe`` on the PATH)."""
     logging.getLogger("torchrl").setLevel(logging.WARNING)  # keep the console to progress + summary
+    try:
+        sys.argv[1:] = resume_in_place(sys.argv[1:])
+        if {"-c", "--cfg"} & set(sys.argv[1:]):
+            validate_overrides(sys.argv[1:])  # Hydra prints the config without calling the job
+    except USER_ERRORS as err:
+        fail(err)
     run_cli(_hydra_main)
     if SweepSummary.failed_jobs:
         sys.exit(1)  # the sweep's summary, just printed, names the failed jobs and their errors

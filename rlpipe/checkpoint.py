@@ -1,5 +1,6 @@
-"""Checkpoints written atomically (temp file, fsync, rename), the newest ``keep`` kept, and
-loaded safely (``weights_only=True``), falling back past damaged files."""
+"""Checkpoints written atomically (temp file, fsync, rename), the newest ``keep`` that load
+kept (damaged ones moved to ``damaged/``), and loaded safely (``weights_only=True``), falling
+back past damaged files."""
 
 from __future__ import annotations
 
@@ -9,14 +10,20 @@ import pickle
 import re
 import sys
 import zipfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import torch
 
 from rlpipe.errors import RlpipeError
+from rlpipe.files import TEMP_SUFFIX, write_atomic
 
 PATTERN = "ckpt_*.pt"
+DAMAGED_DIR = "damaged"
+# (path, size, mtime) of checkpoints known to load: written here, or loaded once
+_known_good: set[tuple[str, int, int]] = set()
 
 
 def checkpoint_path(directory: str | Path, frames: int) -> Path:
@@ -28,38 +35,78 @@ def save_checkpoint(state: dict[str, Any], path: str | Path, keep: int | None = 
     """Write ``state`` to ``path`` so that ``path`` is never seen half-written.
 
     The data goes to a temporary file in the same directory, is flushed to disk, and is
-    renamed over ``path``. With ``keep``, older ``ckpt_*.pt`` files beyond the newest
-    ``keep`` in that directory are deleted afterwards. A failed write (disk full, read-only)
-    removes the temporary file and raises :class:`RlpipeError`; earlier checkpoints stay.
+    renamed over ``path``. With ``keep``, :func:`prune_checkpoints` runs afterwards. A failed
+    write (disk full, read-only) removes the temporary file and raises :class:`RlpipeError`;
+    earlier checkpoints stay.
     """
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         data = io.BytesIO()
         torch.save(state, data)  # in memory first: a failing disk then fails with an OSError
-        with open(tmp, "wb") as f:
-            f.write(data.getbuffer())
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-        dir_fd = os.open(path.parent, os.O_RDONLY)
-        try:
-            os.fsync(dir_fd)
-        finally:
-            os.close(dir_fd)
-    except BaseException as err:
-        tmp.unlink(missing_ok=True)
-        if isinstance(err, OSError):
-            raise RlpipeError(
-                f"cannot write checkpoint {path}: {err.strerror or err}; free some disk space "
-                "or pick a writable hydra.run.dir (earlier checkpoints are intact)"
-            ) from err
-        raise
+        write_atomic(path, data.getvalue(), fault="checkpoint_write")
+    except OSError as err:
+        raise RlpipeError(
+            f"cannot write checkpoint {path}: {err.strerror or err}; free some disk space "
+            "or pick a writable hydra.run.dir (earlier checkpoints are intact)"
+        ) from err
+    _known_good.add(_identity(path))
     if keep is not None:
-        for old in list_checkpoints(path.parent)[:-keep]:
-            old.unlink()
+        prune_checkpoints(path.parent, keep)
     return path
+
+
+def prune_checkpoints(directory: str | Path, keep: int) -> None:
+    """Keep the newest ``keep`` checkpoints in ``directory`` that load and delete older ones;
+    move damaged (or refused) ones to ``damaged/`` with a warning; remove orphan temp files
+    (a write that was killed)."""
+    directory = Path(directory)
+    for tmp in directory.glob(f".{PATTERN}{TEMP_SUFFIX}"):
+        tmp.unlink(missing_ok=True)
+    kept = 0
+    for path in reversed(list_checkpoints(directory)):
+        if kept >= keep:
+            path.unlink()
+        elif _loads(path):
+            kept += 1
+        else:
+            aside = directory / DAMAGED_DIR / path.name
+            aside.parent.mkdir(exist_ok=True)
+            os.replace(path, aside)
+            print(f"rlpipe: warning: moved damaged checkpoint {path} to {aside}", file=sys.stderr)
+
+
+def _identity(path: Path) -> tuple[str, int, int]:
+    stat = path.stat()
+    return str(path), stat.st_size, stat.st_mtime_ns
+
+
+def _loads(path: Path) -> bool:
+    if _identity(path) in _known_good:
+        return True
+    try:
+        load_checkpoint(path)
+    except RlpipeError:
+        return False
+    _known_good.add(_identity(path))
+    return True
+
+
+@contextmanager
+def fitting(path: str | Path) -> Iterator[None]:
+    """Turn any error while applying checkpoint ``path``'s state (wrong keys or shapes, another
+    algorithm's state, a bad RNG state) into one :class:`RlpipeError` line."""
+    try:
+        yield
+    except RlpipeError:
+        raise
+    except Exception as err:  # noqa: BLE001  (load_state_dict raises many kinds)
+        reason = str(err).strip().splitlines()[0] if str(err).strip() else ""
+        raise RlpipeError(
+            f"checkpoint {path} does not fit this run ({type(err).__name__}: {reason[:200]}); "
+            "it was written by another version of the run or damaged: use a checkpoint this "
+            "run wrote"
+        ) from err
 
 
 def list_checkpoints(directory: str | Path) -> list[Path]:
@@ -115,6 +162,7 @@ def load_latest(directory: str | Path) -> tuple[Path, dict[str, Any]]:
             continue
         for message in damaged:
             print(f"rlpipe: warning: {message}; using {path.name} instead", file=sys.stderr)
+        _known_good.add(_identity(path))
         return path, state
     raise RlpipeError(
         f"every checkpoint in {directory} is damaged ({len(found)} files); cannot resume"

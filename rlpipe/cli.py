@@ -9,10 +9,12 @@ import os
 import re
 import sys
 from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
 from typing import Any, NoReturn
 
 from hydra import compose, initialize_config_module
 from hydra.core.config_store import ConfigStore
+from hydra.core.hydra_config import HydraConfig
 from hydra.errors import HydraException, MissingConfigException
 from omegaconf import MISSING, DictConfig, OmegaConf
 from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
@@ -62,6 +64,25 @@ def to_config(cfg: DictConfig) -> Config:
     return OmegaConf.to_object(cfg)
 
 
+def write_hydra_record(run_dir: str | Path, job_cfg: DictConfig) -> None:
+    """Write Hydra's record of the job (``.hydra/config.yaml`` from ``job_cfg``, ``hydra.yaml``,
+    ``overrides.yaml``) into ``run_dir`` unless it has one.
+
+    ``conf/config.yaml`` turns Hydra's own writing off (``hydra.output_subdir: null``): Hydra
+    writes before a job can check that the dir is its own. rlpipe writes the same files once
+    the run dir is checked, and a resumed run keeps the record of the run it continues.
+    """
+    record = Path(run_dir) / ".hydra"
+    try:
+        record.mkdir(parents=True)
+    except FileExistsError:
+        return
+    hydra_cfg = HydraConfig.get()
+    OmegaConf.save(job_cfg, record / "config.yaml")
+    OmegaConf.save(OmegaConf.create({"hydra": hydra_cfg}), record / "hydra.yaml")
+    OmegaConf.save(hydra_cfg.overrides.task, record / "overrides.yaml")
+
+
 def compose_config(name: str, overrides: Sequence[str]) -> Any:
     """Compose ``conf/<name>.yaml`` with ``key=value`` overrides into its dataclass object.
 
@@ -81,6 +102,20 @@ def compose_config(name: str, overrides: Sequence[str]) -> Any:
     if "env" in cfg and OmegaConf.is_missing(cfg.env, "id"):
         cfg.env = None  # no env option chosen
     return OmegaConf.to_object(cfg)
+
+
+def validate_overrides(argv: Sequence[str]) -> None:
+    """Compose ``python -m rlpipe``'s config from ``argv``'s overrides (flags, their values and
+    ``hydra`` keys left out) and run every check :func:`to_config` runs."""
+    overrides, skip = [], False
+    for arg in argv:
+        if skip or arg.startswith("-"):
+            skip = arg in ("-c", "--cfg", "-p", "--package", "-cn", "--config-name", "-cp")
+            continue
+        if not re.match(r"^[+~]{0,2}hydra[./]", arg):
+            overrides.append(arg)
+    with initialize_config_module("rlpipe.conf", version_base="1.3"):
+        to_config(compose("config", overrides=overrides))
 
 
 def run_entry_point(

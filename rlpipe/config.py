@@ -11,7 +11,7 @@ from __future__ import annotations
 import os
 from collections.abc import Iterable
 from dataclasses import dataclass, field, fields, replace
-from typing import Any
+from typing import Any, ClassVar
 
 from rlpipe.errors import RULES, check, check_choice
 
@@ -25,6 +25,18 @@ def checked(default: Any, rule: str | None = None, *, choices: Iterable[Any] = (
     if isinstance(default, list):
         return field(default_factory=lambda: list(default), metadata=meta)
     return field(default=default, metadata=meta)
+
+
+def flatten(node: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Nested dicts as one dict of dotted keys (``{"algo.lr": 0.001, ...}``); empty dicts and
+    ``kwargs`` (gymnasium's, opaque) stay values."""
+    flat: dict[str, Any] = {}
+    for key, value in node.items():
+        if isinstance(value, dict) and value and key != "kwargs":
+            flat.update(flatten(value, f"{prefix}{key}."))
+        else:
+            flat[f"{prefix}{key}"] = value
+    return flat
 
 
 def check_rules(cfg: object, prefix: str) -> None:
@@ -58,8 +70,8 @@ WANDB_MODES = ("online", "offline", "disabled")
 
 @dataclass
 class LoggerConfig:
-    """Where metrics go: ``csv`` (TorchRL's CSVLogger in the run directory), ``tensorboard``,
-    ``wandb`` or ``mlflow`` (each on top of the CSV files), or ``none``."""
+    """Where metrics go: ``csv`` (:class:`rlpipe.loggers.CsvLogger` in the run dir),
+    ``tensorboard``, ``wandb`` or ``mlflow`` (each on top of the CSV files), or ``none``."""
 
     backend: str = checked("csv", choices=LOGGER_BACKENDS)
     project: str | None = None  # W&B project / MLflow experiment (default "rlpipe")
@@ -79,6 +91,10 @@ RUN_KEYS = ("total_frames", "eval_every", "eval_episodes", "checkpoint_every")
 class AlgoConfig:
     """What every algorithm config holds besides its hyper-parameters: its registry ``name`` and
     the run length and cadence it needs, used where :class:`Config` leaves them null."""
+
+    # keys that do not decide the results (budgets, where rollouts run): left out of the
+    # fingerprint that ties a run dir to one run (rlpipe.rundir.fingerprint), like RUN_KEYS
+    not_fingerprinted: ClassVar[tuple[str, ...]] = ()
 
     name: str = ""
     total_frames: int | None = None  # None: the algorithm's own budget (epochs, iterations)
@@ -116,7 +132,7 @@ class Config:
     env: EnvConfig = field(default_factory=EnvConfig)
     algo: Any = field(default_factory=_default_algo)  # an AlgoConfig (DQNConfig, ARSConfig, ...)
     logger: LoggerConfig = field(default_factory=LoggerConfig)
-    seed: int = 0
+    seed: int = checked(0, "seed")
     device: str = "auto"  # auto: cuda when available, else cpu
     total_frames: int | None = None  # null: algo.total_frames
     eval_every: int | None = None  # null: algo.eval_every

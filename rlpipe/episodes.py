@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import torch
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase, ExplorationType, set_exploration_type
+
+from rlpipe import faults
 
 MAX_EVAL_ENVS = 32  # env copies an evaluation steps in lock-step, at most
 
@@ -52,12 +55,22 @@ class EvalResult:
         }
 
 
+class EvalStopped(Exception):
+    """``should_stop`` ended an evaluation before its episodes were done."""
+
+
 @torch.no_grad()
-def evaluate(policy: TensorDictModuleBase, env: EnvBase, episodes: int) -> EvalResult:
+def evaluate(
+    policy: TensorDictModuleBase,
+    env: EnvBase,
+    episodes: int,
+    should_stop: Callable[[], bool] | None = None,
+) -> EvalResult:
     """Run ``episodes`` complete episodes of ``policy`` in deterministic mode on ``env``.
 
     The env's batch of ``n`` copies runs in lock-step; each contributes its first
     :func:`episode_quotas` episodes. Finished copies are reset and their extra episodes ignored.
+    ``should_stop``, polled after every step, aborts the evaluation with :class:`EvalStopped`.
     """
     n = env.batch_size.numel()
     remaining = episode_quotas(n, episodes)
@@ -74,4 +87,7 @@ def evaluate(policy: TensorDictModuleBase, env: EnvBase, episodes: int) -> EvalR
                 result.lengths += td["next", "step_count"].reshape(n)[counted].tolist()
                 remaining -= counted.long()
             td = td_next
+            faults.point("eval")
+            if should_stop is not None and should_stop():
+                raise EvalStopped
     return result

@@ -29,6 +29,7 @@ RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
     "fraction": (lambda v: 0 <= v < 1, "must be in [0, 1)"),
     "sizes": (lambda v: all(h >= 1 for h in v), "must be positive"),
     "optional_at_least_one": (lambda v: v is None or v >= 1, "must be >= 1 or null"),
+    "seed": (lambda v: 0 <= v <= 2**32 - 1, "must be in [0, 2**32 - 1]"),
 }
 
 

@@ -4,7 +4,10 @@ Loads a run's config and its newest (or ``checkpoint=<file>``) checkpoint, runs 
 episodes, prints mean ± std, min, max and the mean episode length, and writes a JSON summary
 (plus an mp4 of one more greedy episode with ``video=true``). ``policy=random`` and
 ``policy=heuristic`` (the notebook's hand-written BipedalWalker controller) are baselines on the
-run's env, or on any ``env=<option>`` without a run dir.
+run's env, or on any ``env=<option>`` without a run dir (their summary goes to
+``outputs/evaluation/<env>-<policy>.json``). The output location is checked before any episode
+runs. A run dir's ``env.id`` of the form ``module:Id`` (which imports ``module``) is refused
+unless ``allow_env_import=true``: run dirs are data, not code.
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ from rlpipe.config import EnvConfig
 from rlpipe.envs import make_env
 from rlpipe.episodes import EvalResult, eval_envs, evaluate
 from rlpipe.errors import check
+from rlpipe.files import check_writable
 from rlpipe.heuristic import heuristic_policy, random_policy
 from rlpipe.loggers import require_extra
 from rlpipe.rundir import load_config, load_run
@@ -37,6 +41,7 @@ from rlpipe.runtime import resolve_device, seed_everything
 from rlpipe.video import frame_rate, make_render_env, record_episode, write_mp4
 
 POLICIES = ("trained", "random", "heuristic")
+BASELINES_DIR = Path("outputs") / "evaluation"  # summaries of baselines without a run dir
 
 
 @dataclass
@@ -50,7 +55,11 @@ class EvaluateConfig:
     video: bool = False  # also write an mp4 of one greedy episode
     seed: int = 0
     device: str = "cpu"
-    out: str | None = None  # the JSON summary; null: <run_dir>/evaluation/<policy>[-<ckpt>].json
+    # the JSON summary; null: <run_dir>/evaluation/<policy>[-<ckpt>].json, without a run dir
+    # outputs/evaluation/<env>-<policy>.json
+    out: str | None = None
+    # let a run dir's env.id import its module (module:Id); only for run dirs you trust
+    allow_env_import: bool = False
     env: EnvConfig | None = field(default_factory=lambda: EnvConfig(id=MISSING))
 
     def __post_init__(self) -> None:
@@ -78,10 +87,16 @@ def _policy(cfg: EvaluateConfig, stack: ExitStack) -> tuple[TensorDictModuleBase
     """The policy to evaluate, its env config and a name for the outputs."""
     if cfg.policy == "trained":
         device = resolve_device(cfg.device)
-        loaded = load_run(cfg.run_dir, cfg.checkpoint, device=device)
+        loaded = load_run(
+            cfg.run_dir, cfg.checkpoint, device=device, allow_env_import=cfg.allow_env_import
+        )
         stack.callback(loaded.algo.close)
         return loaded.algo.policy, loaded.cfg.env, f"trained-{loaded.checkpoint.stem}"
-    env_cfg = load_config(cfg.run_dir).env if cfg.run_dir else cfg.env
+    env_cfg = (
+        load_config(cfg.run_dir, allow_env_import=cfg.allow_env_import).env
+        if cfg.run_dir
+        else cfg.env
+    )
     probe = make_env(env_cfg, num_envs=1)
     stack.callback(probe.close)
     factory = random_policy if cfg.policy == "random" else heuristic_policy
@@ -93,7 +108,7 @@ def _out_path(cfg: EvaluateConfig, env_cfg: EnvConfig, name: str) -> Path:
         return Path(cfg.out)
     if cfg.run_dir:
         return Path(cfg.run_dir) / "evaluation" / f"{name}.json"
-    return Path("evaluation") / f"{re.sub(r'[^A-Za-z0-9._-]+', '_', env_cfg.id)}-{name}.json"
+    return BASELINES_DIR / f"{re.sub(r'[^A-Za-z0-9._-]+', '_', env_cfg.id)}-{name}.json"
 
 
 def run(cfg: EvaluateConfig) -> dict[str, Any]:
@@ -103,13 +118,17 @@ def run(cfg: EvaluateConfig) -> dict[str, Any]:
     seed_everything(cfg.seed)
     with ExitStack() as stack:
         policy, env_cfg, name = _policy(cfg, stack)
+        path = _out_path(cfg, env_cfg, name)
+        hint = "pick a writable place for the summary with out=<file.json>"
+        check_writable(path, hint)
+        if cfg.video:
+            check_writable(path.with_suffix(".mp4"), hint)
         render_env = make_render_env(env_cfg, seed=cfg.seed) if cfg.video else None
         if render_env is not None:
             stack.callback(render_env.close)
         env = make_env(env_cfg, num_envs=eval_envs(cfg.episodes), seed=cfg.seed)
         stack.callback(env.close)
         result = evaluate(policy, env, cfg.episodes)
-        path = _out_path(cfg, env_cfg, name)
         summary: dict[str, Any] = {
             "policy": cfg.policy,
             "env": env_cfg.id,

@@ -1,20 +1,22 @@
-"""Metric loggers: TorchRL's CSV, TensorBoard, W&B and MLflow loggers behind ``logger=...``.
+"""Metric loggers: rlpipe's CSV files, TorchRL's TensorBoard, W&B and MLflow loggers behind
+``logger=...``.
 
-The CSV files under ``<run dir>/metrics/scalars/`` are written for every backend but ``none``:
-``curve.png`` and ``python -m rlpipe.plot`` read them. The other backends get the same metrics
-(and evaluation videos, where they take video) on top.
+The CSV files under ``<run dir>/metrics/scalars/`` are written for every backend but ``none``
+(:class:`CsvLogger`, in TorchRL ``CSVLogger``'s layout and format): ``curve.png`` and
+``python -m rlpipe.plot`` read them. The other backends get the same metrics (and evaluation
+videos, where they take video) on top.
 """
 
 from __future__ import annotations
 
 import importlib
 from collections.abc import Sequence
+from io import FileIO
 from pathlib import Path
 from typing import Any
 
 from torch import Tensor
 from torchrl.record.loggers import (
-    CSVLogger,
     Logger,
     MLFlowLogger,
     TensorboardLogger,
@@ -24,7 +26,8 @@ from torchrl.record.loggers import (
 from rlpipe.config import LoggerConfig
 from rlpipe.errors import RlpipeError
 
-METRICS_DIR = "metrics"  # CSVLogger's experiment name: <run dir>/metrics/scalars/<name>.csv
+METRICS_DIR = "metrics"  # <run dir>/metrics/scalars/<name>.csv (TorchRL CSVLogger's layout)
+MAX_OPEN_FILES = 64  # CsvLogger keeps at most this many metric files open (runs log < 30)
 
 # pip extra -> modules it provides (checked before anything is built)
 EXTRAS: dict[str, tuple[str, ...]] = {
@@ -45,6 +48,97 @@ def require_extra(extra: str, what: str) -> None:
                 f"{what} needs the {extra!r} extra ({module} is missing: {err}); "
                 f'install it with: pip install "rlpipe[{extra}]"'
             ) from err
+
+
+class CsvLogger(Logger):
+    """One CSV file per metric, ``<log_dir>/<exp_name>/scalars/<name>.csv``, one ``step,value``
+    line per :meth:`log_scalar`: TorchRL ``CSVLogger``'s files and format, without its costs.
+
+    Each row is appended with one unbuffered ``write`` as it is logged and nothing is kept in
+    memory (TorchRL's logger keeps every row). Files are opened on first use, at most
+    :data:`MAX_OPEN_FILES` at a time (least recently used closed first). A write error
+    (``ENOSPC``, ``EIO``) propagates from :meth:`log_scalar` and closes that file: no buffered
+    data is left to fail again when the logger is garbage collected. Videos are not CSV data
+    (:func:`takes_video` is false); hyper-parameters are in the run dir's ``config.yaml``.
+    """
+
+    def __init__(self, exp_name: str = METRICS_DIR, log_dir: str | Path = ".") -> None:
+        self._files: dict[str, FileIO] = {}  # metric name -> open file, least recent first
+        self._counts: dict[str, int] = {}  # rows logged without a step, per metric
+        super().__init__(exp_name=exp_name, log_dir=str(log_dir))
+
+    def _create_experiment(self) -> None:
+        return None
+
+    @property
+    def scalars_dir(self) -> Path:
+        """The directory holding the CSV files."""
+        return Path(self.log_dir) / self.exp_name / "scalars"
+
+    def path(self, name: str) -> Path:
+        """The CSV file of metric ``name``: ``eval/return_mean`` -> ``.../eval/return_mean.csv``."""
+        return self.scalars_dir / f"{name}.csv"
+
+    def log_scalar(self, name: str, value: float, step: int | None = None) -> None:
+        """Append ``step,value`` to ``name``'s file (step: rows so far when ``None``)."""
+        if step is None:
+            step = self._counts.get(name, 0)
+            self._counts[name] = step + 1
+        line = f"{int(step)},{float(value)}\n".encode()
+        file = self._file(name)
+        try:
+            view = memoryview(line)
+            while view:  # a regular file takes it in one write; a short one is continued
+                view = view[file.write(view) :]
+        except OSError:
+            self._close(name)
+            raise
+
+    def _file(self, name: str) -> FileIO:
+        file = self._files.pop(name, None)
+        if file is None:
+            if len(self._files) >= MAX_OPEN_FILES:
+                self._close(next(iter(self._files)))
+            path = self.path(name)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            file = FileIO(path, "a")
+        self._files[name] = file  # now the most recently used
+        return file
+
+    def _close(self, name: str) -> None:
+        file = self._files.pop(name, None)
+        if file is not None:
+            try:
+                file.close()
+            except OSError:  # nothing is buffered; a close error has no data to lose
+                pass
+
+    def flush(self, timeout: float | None = None) -> None:
+        """Nothing to do: every row is written when it is logged."""
+
+    def log_video(self, name: str, video: Tensor, step: int | None = None, **kwargs: Any) -> None:
+        raise NotImplementedError(
+            "CSV files hold no videos (takes_video() is false; rlpipe writes mp4s itself)"
+        )
+
+    def log_hparams(self, cfg: dict) -> None:
+        """Nothing to write: the run dir's ``config.yaml`` holds the whole config."""
+
+    def log_histogram(self, name: str, data: Sequence, **kwargs: Any) -> None:
+        raise NotImplementedError("rlpipe logs no histograms")
+
+    def shutdown(self, timeout: float | None = None) -> None:
+        """Close every file (logging again reopens them)."""
+        for name in list(self._files):
+            self._close(name)
+        super().shutdown(timeout)
+
+    def __del__(self) -> None:
+        for name in list(getattr(self, "_files", ())):
+            self._close(name)
+
+    def __repr__(self) -> str:
+        return f"CsvLogger({str(self.scalars_dir)!r})"
 
 
 class TeeLogger(Logger):
@@ -92,7 +186,7 @@ def takes_video(logger: Logger | None) -> bool:
 def make_logger(cfg: LoggerConfig, run_dir: str | Path) -> Logger | None:
     """The TorchRL logger chosen by ``cfg.backend``, writing into ``run_dir``.
 
-    ``csv``: ``CSVLogger``; ``none``: no logger; ``tensorboard`` / ``wandb`` / ``mlflow``: the
+    ``csv``: :class:`CsvLogger`; ``none``: no logger; ``tensorboard`` / ``wandb`` / ``mlflow``: the
     CSV files plus that backend (a :class:`TeeLogger`). A backend whose pip extra is missing
     raises :class:`RlpipeError` naming the install command.
     """
@@ -101,7 +195,7 @@ def make_logger(cfg: LoggerConfig, run_dir: str | Path) -> Logger | None:
     if cfg.backend != "csv":
         require_extra(cfg.backend, f"logger={cfg.backend}")
     run_dir = Path(run_dir).absolute()
-    csv = CSVLogger(exp_name=METRICS_DIR, log_dir=str(run_dir))
+    csv = CsvLogger(exp_name=METRICS_DIR, log_dir=run_dir)
     if cfg.backend == "csv":
         return csv
     return TeeLogger([csv, _backend(cfg, run_dir)])

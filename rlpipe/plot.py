@@ -3,17 +3,20 @@
 Draws learning curves of any set of run dirs or multirun sweep dirs: runs that differ only by
 seed form a group, drawn as the mean (``agg=mean``) or interquartile mean (``agg=iqm``) over
 its seeds with a 95% bootstrap confidence band; groups are labelled by the overrides that set
-them apart. Prints the path of the PNG (and SVG with ``svg=true``).
+them apart. Prints the path of the PNG (and SVG with ``svg=true``). An argument naming an
+existing path is a directory even if it holds ``=`` (``outputs/lr=0.1``).
 """
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 from pathlib import Path
 
 from rlpipe.cli import run_entry_point
-from rlpipe.errors import check
+from rlpipe.errors import RlpipeError, check
 from rlpipe.figures import AGGREGATES, plot_groups
+from rlpipe.files import check_writable
 from rlpipe.metrics import EVAL_METRIC, find_runs, group_runs
 
 OPTIONS = {"agg": "mean", "svg": "false", "metric": EVAL_METRIC, "out": None}
@@ -21,13 +24,18 @@ BOOLEANS = {"true": True, "false": False}
 
 
 def parse_args(argv: Sequence[str]) -> tuple[list[str], dict[str, str | None]]:
-    """Split ``argv`` into directories and ``key=value`` options (unknown keys refused)."""
+    """Split ``argv`` into directories and ``key=value`` options (unknown keys refused).
+
+    An argument that names an existing path is a directory, ``=`` or not.
+    """
     dirs, options = [], dict(OPTIONS)
     for arg in argv:
         key, eq, value = arg.partition("=")
-        if not eq:
+        if not eq or Path(arg).exists():
             dirs.append(arg)
             continue
+        if key not in OPTIONS and ("/" in key or os.sep in key):
+            raise RlpipeError(f"{arg} is not a directory (nor an option: {', '.join(OPTIONS)})")
         check(key in OPTIONS, f"unknown option {key!r}; choose from: {', '.join(OPTIONS)}")
         options[key] = value
     check(bool(dirs), "pass at least one run dir or multirun sweep dir")
@@ -46,16 +54,20 @@ def default_out(dirs: Sequence[str]) -> Path:
 
 def _plot(args: list[str]) -> None:
     dirs, options = parse_args(args)
-    groups = group_runs(find_runs(dirs, options["metric"]))
+    runs = find_runs(dirs, options["metric"])
+    out = Path(options["out"] or default_out(dirs))
+    check_writable(out, "pick a writable place with out=<file.png>")
+    if BOOLEANS[options["svg"]]:
+        check_writable(out.with_suffix(".svg"), "pick a writable place with out=<file.png>")
+    groups = group_runs(runs)
     written = plot_groups(
         groups,
-        options["out"] or default_out(dirs),
+        out,
         metric=options["metric"],
         aggregate=options["agg"],
         svg=BOOLEANS[options["svg"]],
     )
-    runs = sum(len(group.runs) for group in groups)
-    print(f"rlpipe: {len(groups)} group(s) from {runs} run(s):")
+    print(f"rlpipe: {len(groups)} group(s) from {len(runs)} run(s):")
     for group in groups:
         print(f"  {group.label}: {len(group.runs)} seed(s)")
     for path in written:

@@ -2,25 +2,50 @@
 
 Every run writes ``config.yaml`` (the whole :class:`Config`, the algorithm's ``name``
 included) before training; ``evaluate``, ``resume`` and research code rebuild the run from it.
+A run dir belongs to one run: its :func:`fingerprint` (the keys that decide the results) must
+match to resume in it, and :func:`lock_run_dir` keeps a second process out while one writes.
 """
 
 from __future__ import annotations
 
+import fcntl
+import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, fields, is_dataclass
 from functools import partial
 from pathlib import Path
 from typing import Any
 
 import torch
+import yaml
 from omegaconf import OmegaConf
 
 from rlpipe.algos import ALGORITHMS, Algorithm, make_algorithm
-from rlpipe.checkpoint import list_checkpoints, load_checkpoint, load_latest
-from rlpipe.config import Config, EnvConfig, LoggerConfig
+from rlpipe.checkpoint import fitting, list_checkpoints, load_checkpoint, load_latest
+from rlpipe.config import RUN_KEYS, Config, EnvConfig, LoggerConfig, flatten
 from rlpipe.envs import make_env
 from rlpipe.errors import RlpipeError, check
+from rlpipe.files import write_atomic
 
 CONFIG_FILE = "config.yaml"
+LOCK_FILE = ".lock"
+# top-level keys that do not decide a run's results: its length and cadences, logging,
+# progress, and where it runs (the algorithm's own are AlgoConfig.not_fingerprinted)
+NOT_FINGERPRINTED = (
+    *RUN_KEYS,
+    "keep_checkpoints",
+    "progress",
+    "video",
+    "threads",
+    "device",
+    "resume",
+    "logger",
+)
+
+
+class RunDirConflict(RlpipeError):
+    """The run dir belongs to another run, or another process is writing it."""
 
 
 def config_to_dict(cfg: Config) -> dict[str, Any]:
@@ -51,16 +76,86 @@ def _build(cls: type, data: dict[str, Any]) -> Any:
     return cls(**{k: v for k, v in data.items() if k in _names(cls)})
 
 
+def fingerprint(cfg: Config | dict[str, Any]) -> dict[str, Any]:
+    """What decides a run's results, flat (``{"algo.lr": 0.0001, "seed": 0, ...}``): algorithm,
+    env, architecture, hyper-parameters and seed; not budgets, cadences, logging or progress."""
+    data = config_to_dict(cfg) if isinstance(cfg, Config) else dict(cfg)
+    algo = dict(data.get("algo") or {})
+    schema = ALGORITHMS[algo["name"]][0] if algo.get("name") in ALGORITHMS else None
+    for key in (*RUN_KEYS, *(schema.not_fingerprinted if schema else ())):
+        algo.pop(key, None)
+    data = {k: v for k, v in data.items() if k not in NOT_FINGERPRINTED}
+    return flatten({**data, "algo": algo})
+
+
+def fingerprint_diff(ours: dict[str, Any], theirs: dict[str, Any]) -> str:
+    """The keys in which two fingerprints differ, as ``key (ours here, theirs there)``."""
+    keys = [k for k in {**theirs, **ours} if ours.get(k) != theirs.get(k)]
+    keys.sort(key=lambda k: k not in ("algo.name", "env.id"))  # what tells runs apart first
+    shown = [f"{k} ({ours.get(k)!r} here, {theirs.get(k)!r} there)" for k in keys[:3]]
+    more = f" and {len(keys) - 3} more" if len(keys) > 3 else ""
+    return ", ".join(shown) + more
+
+
+def check_same_run(cfg: Config, run_dir: str | Path) -> Config:
+    """The config stored in ``run_dir``, after checking ``cfg`` is the same run (same
+    fingerprint); otherwise :class:`RunDirConflict` names the differing keys."""
+    stored = load_config(run_dir, allow_env_import=True)  # compared, not built
+    ours, theirs = fingerprint(cfg), fingerprint(stored)
+    if ours != theirs:
+        raise RunDirConflict(
+            f"{run_dir} belongs to another run: it differs in {fingerprint_diff(ours, theirs)}; "
+            f"resume it with the overrides it was started with ({original_command(run_dir)} "
+            f"resume={run_dir}) "
+            "or pick another run dir (hydra.run.dir=<dir>)"
+        )
+    return stored
+
+
+@contextmanager
+def lock_run_dir(run_dir: str | Path) -> Iterator[None]:
+    """Hold ``run_dir``'s lock file while the block runs: a second process trying to lock it
+    gets :class:`RunDirConflict` naming the holder's PID (the OS drops the lock with the
+    process, however it dies)."""
+    path = Path(run_dir) / LOCK_FILE
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError as err:
+        raise RlpipeError(
+            f"cannot write the run directory {run_dir}: {err.strerror or err}; "
+            "pick a writable one with hydra.run.dir=<dir>"
+        ) from err
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
+            raise RunDirConflict(
+                f"{run_dir} is in use by another rlpipe process (pid {holder}); wait for it to "
+                "end or pick another run dir (hydra.run.dir=<dir>)"
+            ) from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        yield
+    finally:
+        os.close(fd)  # closing the descriptor releases the lock
+
+
 def save_config(cfg: Config, run_dir: str | Path) -> Path:
-    """Write ``run_dir/config.yaml``."""
+    """Write ``run_dir/config.yaml`` (atomically: a reader sees the old file or the new)."""
     path = Path(run_dir) / CONFIG_FILE
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(OmegaConf.to_yaml(config_to_dict(cfg)))
+    write_atomic(path, OmegaConf.to_yaml(config_to_dict(cfg)).encode())
     return path
 
 
-def load_config(run_dir: str | Path) -> Config:
-    """The :class:`Config` a run was started with (``run_dir/config.yaml``)."""
+def load_config(run_dir: str | Path, *, allow_env_import: bool = False) -> Config:
+    """The :class:`Config` a run was started with (``run_dir/config.yaml``).
+
+    A run dir is data: an ``env.id`` of the form ``module:Id`` (which makes gymnasium import
+    ``module``) is refused unless ``allow_env_import`` (only for run dirs you trust).
+    """
     path = Path(run_dir) / CONFIG_FILE
     check(Path(run_dir).is_dir(), f"run directory {run_dir} does not exist")
     check(
@@ -68,7 +163,19 @@ def load_config(run_dir: str | Path) -> Config:
         f"{run_dir} is not an rlpipe run directory (no {CONFIG_FILE}); "
         "pass a directory a training run wrote, e.g. outputs/<date>/<time>",
     )
-    return config_from_dict(OmegaConf.to_container(OmegaConf.load(path)))
+    try:
+        data = yaml.safe_load(path.read_text())
+        check(isinstance(data, dict) and isinstance(data.get("algo"), dict), "not a run config")
+        cfg = config_from_dict(data)
+    except (RlpipeError, yaml.YAMLError, TypeError, ValueError, KeyError, AttributeError) as err:
+        reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise RlpipeError(f"{path} is damaged ({reason}); it is not a config rlpipe wrote") from err
+    check(
+        allow_env_import or ":" not in cfg.env.id,
+        f"{path} names env.id={cfg.env.id!r}, which would import its module: a run dir is "
+        "data, not code; pass allow_env_import=true if you trust this run dir",
+    )
+    return cfg
 
 
 @dataclass
@@ -80,16 +187,19 @@ class LoadedRun:
     checkpoint: Path
 
 
-def find_checkpoint(run_dir: str | Path, name: str | None = None) -> Path:
-    """``run_dir/checkpoints/<name>``, or the newest checkpoint when ``name`` is None."""
+def read_checkpoint(run_dir: str | Path, name: str | None = None) -> tuple[Path, dict[str, Any]]:
+    """``run_dir/checkpoints/<name>`` and its state, or the newest one that loads (``name``
+    None)."""
     directory = Path(run_dir) / "checkpoints"
-    if name is not None:
-        path = directory / name if not Path(name).is_absolute() else Path(name)
-        check(path.is_file(), f"checkpoint {path} does not exist")
-        return path
-    found = list_checkpoints(directory)
-    check(bool(found), f"{run_dir} has no checkpoint yet (nothing in {directory}); train first")
-    return found[-1]
+    if name is None:
+        check(
+            bool(list_checkpoints(directory)),
+            f"{run_dir} has no checkpoint yet (nothing in {directory}); train first",
+        )
+        return load_latest(directory)
+    path = directory / name if not Path(name).is_absolute() else Path(name)
+    check(path.is_file(), f"checkpoint {path} does not exist")
+    return path, load_checkpoint(path)
 
 
 def load_run(
@@ -98,20 +208,24 @@ def load_run(
     *,
     device: str | torch.device = "cpu",
     num_envs: int = 1,
+    allow_env_import: bool = False,
 ) -> LoadedRun:
-    """Rebuild a run's algorithm on ``num_envs`` fresh env copies and load its checkpoint.
+    """Rebuild a run's algorithm on ``num_envs`` fresh env copies and load its checkpoint
+    (``checkpoint``: a file name in ``run_dir/checkpoints``; None: the newest that loads).
 
-    The caller owns ``LoadedRun.algo`` and must ``close()`` it.
+    ``allow_env_import``: see :func:`load_config`. The caller owns ``LoadedRun.algo`` and must
+    ``close()`` it.
     """
-    cfg = load_config(run_dir)
-    path = find_checkpoint(run_dir, checkpoint)
-    try:
-        state = load_checkpoint(path)
-    except Exception as err:  # noqa: BLE001  (torch raises many kinds on a damaged file)
-        raise RlpipeError(f"cannot load checkpoint {path}: {err}".splitlines()[0]) from err
+    cfg = load_config(run_dir, allow_env_import=allow_env_import)
+    path, state = read_checkpoint(run_dir, checkpoint)
     factory = partial(make_env, cfg.env, num_envs=num_envs, seed=cfg.seed)
     algo = make_algorithm(factory, cfg.algo, device=device)
-    algo.load_state_dict(state["algo"])
+    try:
+        with fitting(path):
+            algo.load_state_dict(state["algo"])
+    except BaseException:
+        algo.close()
+        raise
     return LoadedRun(cfg, algo, path)
 
 
@@ -122,33 +236,28 @@ def original_command(run_dir: str | Path) -> str:
     return " ".join(["python -m rlpipe", *map(str, overrides)])
 
 
-def resume_state(cfg: Config, run_dir: str | Path, *, required: bool) -> dict[str, Any] | None:
-    """The checkpoint to continue ``run_dir`` from, after checking ``cfg`` is the same run.
+def resume_state(
+    cfg: Config, run_dir: str | Path, *, required: bool
+) -> tuple[Path, dict[str, Any]] | None:
+    """The checkpoint to continue ``run_dir`` from (path and state), or None to start at zero.
 
-    The run must have been the same algorithm on the same env (other keys, e.g. a larger
-    ``total_frames``, may differ). Damaged checkpoints are skipped with a warning; with
-    ``required`` (``resume=<dir>``) a run dir without any checkpoint is an error, otherwise
-    the run starts from zero.
+    ``cfg`` must be the run the dir holds (:func:`check_same_run`; e.g. a larger
+    ``total_frames`` may differ), and so must the checkpoint's own record of its config.
+    Damaged checkpoints are skipped with a warning; with ``required`` (``resume=<dir>``) a run
+    dir without any checkpoint is an error. Nothing in the dir is changed.
     """
     run_dir = Path(run_dir)
-    stored = load_config(run_dir)
-    if (stored.algo.name, stored.env.id) != (cfg.algo.name, cfg.env.id):
-        raise RlpipeError(
-            f"{run_dir} holds a run of algo={stored.algo.name} on {stored.env.id}, not "
-            f"algo={cfg.algo.name} on {cfg.env.id}; resume it with the overrides it was started "
-            f"with ({original_command(run_dir)} resume={run_dir}) or pick another run dir"
-        )
+    if required or (run_dir / CONFIG_FILE).exists():
+        check_same_run(cfg, run_dir)
     if not list_checkpoints(run_dir / "checkpoints"):
         check(not required, f"{run_dir} has no checkpoint to resume from; start a new run")
         return None
-    _, state = load_latest(run_dir / "checkpoints")
-    return state
-
-
-def truncate_metrics(run_dir: str | Path, frames: int) -> None:
-    """Drop CSV metric rows logged after ``frames`` (they belong to the lost part of a run)."""
-    for path in (Path(run_dir) / "metrics" / "scalars").rglob("*.csv"):
-        lines = path.read_text().splitlines(keepends=True)
-        kept = [line for line in lines if line.strip() and float(line.split(",", 1)[0]) <= frames]
-        if len(kept) != len(lines):
-            path.write_text("".join(kept))
+    path, state = load_latest(run_dir / "checkpoints")
+    if isinstance(state, dict) and isinstance(state.get("config"), dict):
+        ours, theirs = fingerprint(cfg), fingerprint(state["config"])
+        if ours != theirs:
+            raise RunDirConflict(
+                f"checkpoint {path} was written by another run: it differs in "
+                f"{fingerprint_diff(ours, theirs)}; pick another run dir (hydra.run.dir=<dir>)"
+            )
+    return path, state

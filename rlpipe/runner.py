@@ -16,12 +16,16 @@ from torchrl.envs import EnvBase
 from torchrl.record.loggers import Logger
 from tqdm.auto import tqdm
 
+from rlpipe import faults
 from rlpipe.algos.base import EPISODE_RETURN, Algorithm, Metrics
 from rlpipe.callbacks import Callback
 from rlpipe.checkpoint import checkpoint_path, list_checkpoints, save_checkpoint
-from rlpipe.episodes import EvalResult, evaluate
+from rlpipe.episodes import EvalResult, EvalStopped, evaluate
 from rlpipe.errors import RlpipeError, check
+from rlpipe.files import write_atomic
 from rlpipe.runtime import rng_state, set_rng_state
+
+SUMMARY_FILE = "summary.json"
 
 
 @dataclass
@@ -151,6 +155,7 @@ class Runner:
         self._elapsed_before = 0.0  # wall seconds of the run before a resume
         self._eval_seconds = 0.0
         self._signal: int | None = None
+        self._pending_eval = False  # an evaluation a signal cut short, to run first on resume
         self._last_return = math.nan  # of the latest finished training episode
         self._window = _Window()  # scalars since the last log flush
         self._window_start, self._window_frames = self._start, 0
@@ -158,10 +163,15 @@ class Runner:
     def run(self) -> RunResult:
         """Train until the budget is spent; return the final evaluation and timings.
 
-        SIGINT/SIGTERM end the current iteration, write a checkpoint and raise
+        SIGINT/SIGTERM end the current iteration (or evaluation), write a checkpoint and raise
         :class:`Interrupted` (a second signal stops at once); a non-finite loss or parameter
-        raises :class:`Diverged` without writing a checkpoint.
+        raises :class:`Diverged` without writing a checkpoint. A run resumed after its final
+        checkpoint trains, evaluates and logs nothing: it reports the result it had.
         """
+        if self.finished and not self._pending_eval:
+            stored = self._stored_summary()
+            if stored is not None or self.last_eval is not None:
+                return self._finished_before(stored)
         start = self._start = time.perf_counter() - self._elapsed_before
         handlers = self._catch_signals()
         frames = self.algo.frames
@@ -172,23 +182,29 @@ class Runner:
         self._window_start, self._window_frames = time.perf_counter(), frames
         bar = self._progress_bar()
         try:
+            if self._pending_eval and not self.finished:  # the one a signal cut short
+                self._evaluate()
             while not self.finished:
                 before = self._progress()
                 metrics = self.algo.train_step()
                 bar.update(self._progress() - before)
+                faults.point("train_step")
                 self._check_finite(metrics)
                 self._record(metrics)
                 frames = self.algo.frames
-                if self._signal is not None:
-                    raise Interrupted(self._signal, frames, self.save())
                 if log.due(frames):
                     bar.set_postfix(self._flush(), refresh=False)
                 if not self.finished and evaluation.due(frames):
                     self._evaluate()
+                if self._signal is not None:
+                    raise Interrupted(self._signal, frames, self.save())
                 if not self.finished and checkpoint.due(frames):
                     self.save()
             self._evaluate()
+            if self._signal is not None:
+                raise Interrupted(self._signal, self.algo.frames, self.save())
             self.save()
+            faults.point("final_checkpoint")
         finally:
             bar.close()
             for signum, handler in handlers.items():
@@ -201,10 +217,45 @@ class Runner:
             wall_time=time.perf_counter() - start,
             run_dir=str(self.run_dir),
         )
-        (self.run_dir / "summary.json").write_text(json.dumps(asdict(result), indent=2) + "\n")
+        self._write_summary(result)
         for callback in self.callbacks:
             callback.on_end(self, result)
         return result
+
+    def _finished_before(self, stored: RunResult | None) -> RunResult:
+        """The result of a run resumed at (or past) its budget: its ``summary.json``, or, when
+        a kill came between the final checkpoint and the summary, the final evaluation the
+        checkpoint holds (then the summary is written and the callbacks run)."""
+        tqdm.write(
+            f"rlpipe: {self.run_dir} already finished at {self.algo.frames:,} frames; "
+            "raise total_frames to train it further"
+        )
+        if stored is not None:
+            return stored
+        result = RunResult(
+            eval_mean=self.last_eval.mean,
+            eval_std=self.last_eval.std,
+            eval_episodes=len(self.last_eval.returns),
+            frames=self.algo.frames,
+            wall_time=self._elapsed_before,
+            run_dir=str(self.run_dir),
+        )
+        self._write_summary(result)
+        for callback in self.callbacks:
+            callback.on_end(self, result)
+        return result
+
+    def _stored_summary(self) -> RunResult | None:
+        """``summary.json`` when it reports the frames the algorithm is at."""
+        try:
+            result = RunResult(**json.loads((self.run_dir / SUMMARY_FILE).read_text()))
+        except (OSError, ValueError, TypeError):
+            return None
+        return result if result.frames == self.algo.frames else None
+
+    def _write_summary(self, result: RunResult) -> None:
+        text = json.dumps(asdict(result), indent=2) + "\n"
+        write_atomic(self.run_dir / SUMMARY_FILE, text.encode(), fault="summary")
 
     @property
     def finished(self) -> bool:
@@ -215,8 +266,11 @@ class Runner:
         )
 
     def save(self) -> Path:
-        """Write a checkpoint now: the algorithm's state, the global RNGs, the run's clocks and
-        ``extra_state``."""
+        """Write a checkpoint now: the algorithm's state, the global RNGs, the run's clocks, the
+        last evaluation and ``extra_state``. Metrics not yet logged are logged first, so the
+        CSVs hold every row up to the checkpoint's frames."""
+        if self._window.sums:
+            self._flush()
         state = {
             **self.extra_state,
             "algo": self.algo.state_dict(),
@@ -225,17 +279,29 @@ class Runner:
             "runner": {
                 "elapsed": time.perf_counter() - self._start,
                 "eval_seconds": self._eval_seconds,
+                "last_eval": None if self.last_eval is None else asdict(self.last_eval),
+                "pending_eval": self._pending_eval,
             },
         }
         path = checkpoint_path(self.run_dir / "checkpoints", self.algo.frames)
         return save_checkpoint(state, path, keep=self.keep_checkpoints)
 
     def restore(self, state: dict[str, Any]) -> None:
-        """Continue from a checkpoint :meth:`save` wrote (algorithm, RNGs, clocks)."""
+        """Continue from a checkpoint :meth:`save` wrote (algorithm, RNGs, clocks, last
+        evaluation)."""
+        check(
+            type(state["frames"]) is int and state["frames"] >= 0,
+            f"frames must be a whole number >= 0, got {state['frames']!r}",
+        )
         self.algo.load_state_dict(state["algo"])
+        check(self.algo.frames == state["frames"], "the algorithm's frames disagree")
         set_rng_state(state["rng"])
-        self._elapsed_before = float(state["runner"]["elapsed"])
-        self._eval_seconds = float(state["runner"]["eval_seconds"])
+        runner = state["runner"]
+        self._elapsed_before = float(runner["elapsed"])
+        self._eval_seconds = float(runner["eval_seconds"])
+        last = runner.get("last_eval")
+        self.last_eval = None if last is None else EvalResult(**last)
+        self._pending_eval = bool(runner.get("pending_eval", False))
 
     def _catch_signals(self) -> dict[int, Any]:
         """Route SIGINT/SIGTERM to a flag checked after each iteration (main thread only)."""
@@ -245,6 +311,7 @@ class Runner:
                 signal.signal(signum, signal.SIG_DFL)
                 signal.raise_signal(signum)
             self._signal = signum
+            self.algo.should_stop = self._stop_requested  # a long iteration may end early
             tqdm.write(f"rlpipe: {signal.Signals(signum).name}: checkpointing after this iteration")
 
         previous = {}
@@ -254,6 +321,9 @@ class Runner:
         except ValueError:  # not the main thread: leave signals alone
             pass
         return previous
+
+    def _stop_requested(self) -> bool:
+        return self._signal is not None
 
     def _progress(self) -> int:
         """What the bar counts: frames, or iterations when only the algorithm's budget binds."""
@@ -290,7 +360,8 @@ class Runner:
             raise Diverged(
                 f"training diverged at {self.algo.frames:,} frames: {bad[0]} is not finite; "
                 f"stopped without a new checkpoint (last good: "
-                f"{kept[-1] if kept else 'none'}); try a smaller algo.lr"
+                f"{kept[-1] if kept else 'none'}); "
+                f"{getattr(self.algo, 'divergence_hint', 'try a smaller algo.lr')}"
             )
 
     def _record(self, metrics: Metrics) -> None:
@@ -305,8 +376,17 @@ class Runner:
                 self._window.add(key, value)
 
     def _evaluate(self) -> None:
+        """Evaluate and log; a signal aborts it (it then runs first when the run resumes)."""
         start = time.perf_counter()
-        self.last_eval = evaluate(self.algo.policy, self.eval_env, self.eval_episodes)
+        try:
+            result = evaluate(
+                self.algo.policy, self.eval_env, self.eval_episodes, self._stop_requested
+            )
+        except EvalStopped:
+            self._pending_eval = True
+            self._eval_seconds += time.perf_counter() - start
+            return
+        self.last_eval, self._pending_eval = result, False
         scalars = self.last_eval.metrics()
         scalars["time/eval_seconds"] = time.perf_counter() - start
         # wall time spent training so far, evaluations excluded

@@ -16,7 +16,6 @@ import io
 import json
 import logging
 import math
-import os
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -28,6 +27,8 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
 from rlpipe.cli import USER_ERRORS, format_error
+from rlpipe.files import write_atomic
+from rlpipe.rundir import RunDirConflict
 from rlpipe.runner import RunResult
 
 log = logging.getLogger(__name__)
@@ -49,10 +50,20 @@ COLUMNS = (
 )
 
 
-def run_sweep_job(job: Callable[[], RunResult], run_dir: str | Path) -> RunResult | None:
-    """Run one job of a sweep; on an error, record it in ``run_dir`` and return None.
+def run_sweep_job(
+    job: Callable[[], RunResult],
+    run_dir: str | Path,
+    *,
+    record: Callable[[Path], None],
+    rejected_dir: str | Path,
+) -> RunResult | None:
+    """Run one job of a sweep; on an error, record it and return None.
 
-    User errors are reported in their one line; anything else (a bug) also logs its traceback.
+    The error goes to ``error.json`` beside the job's record (``record(dir)`` writes Hydra's
+    ``.hydra/`` files where missing) in ``run_dir``, or, when the run dir belongs to another run
+    or another process (:class:`~rlpipe.rundir.RunDirConflict`: jobs that resolve to one dir),
+    in ``rejected_dir`` so that nothing of that run changes. User errors are reported in their
+    one line; anything else (a bug) also logs its traceback.
     """
     start = time.perf_counter()
     try:
@@ -64,8 +75,10 @@ def run_sweep_job(job: Callable[[], RunResult], run_dir: str | Path) -> RunResul
             log.exception("job failed")
             message = f"{type(err).__name__}: {format_error(err)}"
         print(f"rlpipe: error: {message} (job in {run_dir})", file=sys.stderr)
-        record = {"error": message, "wall_time": time.perf_counter() - start}
-        _write_atomic(Path(run_dir) / ERROR_FILE, json.dumps(record, indent=2) + "\n")
+        where = Path(rejected_dir if isinstance(err, RunDirConflict) else run_dir)
+        record(where)
+        record_error = {"error": message, "wall_time": time.perf_counter() - start}
+        write_atomic(where / ERROR_FILE, (json.dumps(record_error, indent=2) + "\n").encode())
         return None
 
 
@@ -144,15 +157,9 @@ def write_summary(sweep_dir: str | Path) -> list[JobRow]:
     """Write ``summary.csv`` and ``summary.md`` into ``sweep_dir`` (each complete, or absent)."""
     rows = collect_jobs(sweep_dir)
     if rows:
-        _write_atomic(Path(sweep_dir) / CSV_FILE, summary_csv(rows))
-        _write_atomic(Path(sweep_dir) / MARKDOWN_FILE, summary_markdown(rows))
+        write_atomic(Path(sweep_dir) / CSV_FILE, summary_csv(rows).encode())
+        write_atomic(Path(sweep_dir) / MARKDOWN_FILE, summary_markdown(rows).encode())
     return rows
-
-
-def _write_atomic(path: Path, text: str) -> None:
-    temp = path.with_name(f".{path.name}.tmp")
-    temp.write_text(text)
-    os.replace(temp, path)
 
 
 class SweepSummary(Callback):

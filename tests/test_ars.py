@@ -4,7 +4,13 @@ from __future__ import annotations
 
 import io
 import multiprocessing
+import os
 import pickle
+import re
+import signal
+import sys
+import threading
+import time
 from dataclasses import fields
 from functools import partial
 
@@ -19,7 +25,7 @@ from torch import nn
 from torch.nn.utils import parameters_to_vector, vector_to_parameters
 
 from rlpipe.algos import ARS, Algorithm, ARSConfig
-from rlpipe.algos.ars import ARSSearch, PopulationPolicy, ars_update, make_ars_policy
+from rlpipe.algos.ars import ARSSearch, PopulationPolicy, ars_update, backends, make_ars_policy
 from rlpipe.algos.ars.rollout import rollout
 from rlpipe.config import EnvConfig
 from rlpipe.envs import make_env
@@ -210,7 +216,10 @@ def test_algorithm_checkpoint_holds_normaliser_and_parameters():
     assert isinstance(algo, Algorithm)
     metrics = algo.train_step()
     assert algo.frames == metrics["train/env_steps"] > 0
-    assert set(metrics) >= {"train/return_mean", "train/return_max", "train/steps_per_second"}
+    assert set(metrics) >= {"train/return_mean", "train/return_max", "train/env_steps"}
+    # timing figures differ between identical runs: only time/ metrics may
+    assert {"time/steps_per_second", "time/rollout_cpu_seconds"} <= set(metrics)
+    assert not {"train/steps_per_second", "train/rollout_cpu_seconds"} & set(metrics)
     buffer = io.BytesIO()
     torch.save(algo.state_dict(), buffer)
     buffer.seek(0)
@@ -295,6 +304,12 @@ def test_config_checks():
         ARSSearch(policy, factory, backend="spark")
 
 
+def test_divergence_hint_names_ars_settings():
+    """The runner's divergence error ends with the algorithm's hint: ARS has no algo.lr."""
+    keys = re.findall(r"algo\.(\w+)", ARS.divergence_hint)
+    assert keys and set(keys) <= {field.name for field in fields(ARSConfig)}
+
+
 def test_non_flat_observation_is_rejected(image_env_id):
     with pytest.raises(RlpipeError, match="flat vector observation"):
         ARS(partial(make_env, EnvConfig(id=image_env_id)), ARSConfig(workers=1))
@@ -321,3 +336,112 @@ def test_cli_bad_input_is_one_line(rlpipe_cli, args, message):
     assert proc.returncode == 2
     lines = [line for line in proc.stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and lines[0].startswith(f"rlpipe: error: {message}"), proc.stderr
+
+
+def _train_until_killed(conn, variant: str) -> None:
+    """The main process of a run, forked from the test process (which has imported everything):
+    ARS with two workers, whose pids it sends once they are up, trains until killed."""
+    if variant == "spawn":
+        backends._start_method = lambda: "spawn"
+    elif variant == "fork-pipes-only":  # no PR_SET_PDEATHSIG: only EOF on the pipes
+        backends._die_with_parent = lambda parent_pid: True
+    elif variant == "fork-prctl-only":  # workers keep the inherited pipe ends: only the kernel
+        backends._PARENT_ENDS = _Forgetful()
+    cfg = ARSConfig(num_directions=4, num_best=4, episode_length=200, workers=2)
+    algo = ARS(partial(make_env, PENDULUM, seed=0), cfg)
+    algo.search.start()
+    conn.send([proc.pid for proc in multiprocessing.active_children()])
+    while True:
+        algo.train_step()
+
+
+class _Forgetful(set):
+    """A set that keeps nothing."""
+
+    def add(self, item: object) -> None:
+        pass
+
+
+def _start_time(pid: int) -> str | None:
+    """``pid``'s start time (with the pid, a process's identity); None once it is gone (a
+    zombie counts as gone: it holds no memory, and init reaps it)."""
+    try:
+        with open(f"/proc/{pid}/stat") as file:
+            stat = file.read().rpartition(")")[2].split()
+    except OSError:
+        return None
+    return None if stat[0] in ("Z", "X") else stat[19]
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="forks, reads /proc")
+@pytest.mark.parametrize(
+    # spawned workers import torch & co. afresh: slow, in the fault-injection suite
+    "variant",
+    [
+        "fork",
+        "fork-pipes-only",
+        "fork-prctl-only",
+        pytest.param("spawn", marks=pytest.mark.faults),
+    ],
+)
+def test_workers_exit_when_the_main_process_is_killed(variant):
+    """SIGKILL of the main process leaves no worker behind: each worker sees EOF on its pipe
+    (it holds no other end of any pipe) and the kernel kills it with its parent (prctl)."""
+    ctx = multiprocessing.get_context("fork")
+    receive, send = ctx.Pipe(duplex=False)
+    main = ctx.Process(target=_train_until_killed, args=(send, variant))
+    main.start()
+    send.close()
+    try:
+        assert receive.poll(120), "the workers did not start"
+        workers = {pid: _start_time(pid) for pid in receive.recv()}
+        assert len(workers) == 2 and None not in workers.values()
+        time.sleep(0.5)  # mid-iteration
+    finally:
+        main.kill()
+        main.join()
+    deadline = time.monotonic() + 5
+    while True:
+        left = [pid for pid, start in workers.items() if _start_time(pid) == start]
+        if not left or time.monotonic() > deadline:
+            break
+        time.sleep(0.05)
+    for pid in left:  # the same processes (pid and start time): do not leave them behind
+        os.kill(pid, signal.SIGKILL)
+    assert not left, f"workers {left} outlived the killed main process"
+
+
+def test_a_killed_worker_stops_training_with_one_line():
+    """A worker killed mid-training (OOM killer, kill -9) raises one RlpipeError line in the
+    main process within seconds; close() then neither raises nor hangs."""
+    before = set(multiprocessing.active_children())
+    cfg = ARSConfig(num_directions=4, num_best=4, episode_length=200, workers=2)
+    algo = ARS(partial(make_env, PENDULUM, seed=0), cfg)
+    try:
+        algo.train_step()
+        workers = list(set(multiprocessing.active_children()) - before)
+        assert len(workers) == 2
+        victim, killed_at = workers[0], []
+
+        def kill() -> None:
+            killed_at.append(time.monotonic())
+            os.kill(victim.pid, signal.SIGKILL)
+
+        timer = threading.Timer(0.3, kill)
+        timer.start()
+        with pytest.raises(RlpipeError) as error:
+            while not killed_at or time.monotonic() < killed_at[0] + 10:
+                algo.train_step()
+        raised_at = time.monotonic()
+        timer.join()
+        assert raised_at - killed_at[0] < 5
+        message = str(error.value)
+        assert f"ARS rollout worker (pid {victim.pid}) died: killed by SIGKILL" in message
+        assert "resume=" in message and "\n" not in message
+        with pytest.raises(RlpipeError, match="worker"):  # the pool is not used again
+            algo.train_step()
+    finally:
+        start = time.monotonic()
+        algo.close()
+        assert time.monotonic() - start < 5
+    assert set(multiprocessing.active_children()) == before  # the other worker is stopped too

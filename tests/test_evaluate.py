@@ -4,6 +4,12 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -116,7 +122,7 @@ def test_evaluate_bad_input(
     missing = tmp_path / "no-such-run"
     argv = [a.replace("MISSING", str(missing)).replace("RUN", str(run_dir)) for a in args]
     assert_one_error_line(main, argv, message, capsys)
-    assert not (tmp_path / "evaluation").exists()
+    assert not (tmp_path / "evaluation").exists() and not (tmp_path / "outputs").exists()
 
 
 def test_evaluate_bad_input_cli(tmp_path: Path) -> None:
@@ -126,3 +132,155 @@ def test_evaluate_bad_input_cli(tmp_path: Path) -> None:
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1, proc.stderr
     assert lines[0].startswith("rlpipe: error:") and "does not exist" in lines[0]
+
+
+def test_baseline_default_out_is_under_outputs(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Without a run dir the summary goes to outputs/evaluation/, not ./evaluation/."""
+    monkeypatch.chdir(tmp_path)
+    main(["policy=random", "env=cartpole", "episodes=2"])
+    out = Path("outputs") / "evaluation" / "CartPole-v1-random.json"
+    assert f"summary {out}" in capsys.readouterr().out
+    assert json.loads((tmp_path / out).read_text())["policy"] == "random"
+    assert not (tmp_path / "evaluation").exists()
+
+
+def copy_run(run_dir: Path, dest: Path) -> Path:
+    """A copy of the fixture run without the evaluations other tests wrote into it."""
+    shutil.copytree(run_dir, dest, ignore=shutil.ignore_patterns("evaluation"))
+    return dest
+
+
+def no_episodes(*args: object, **kwargs: object) -> None:
+    raise AssertionError("episodes ran before the output location was checked")
+
+
+@pytest.fixture
+def no_eval(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Running an episode fails the test."""
+    monkeypatch.setattr(sys.modules["rlpipe.evaluate"], "evaluate", no_episodes)
+
+
+def test_read_only_run_dir_fails_before_episodes(
+    run_dir: Path,
+    tmp_path: Path,
+    no_eval: None,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """A run dir that takes no new file (simulated: root writes through chmod 0o555)."""
+    copy = copy_run(run_dir, tmp_path / "run")
+    real = tempfile.TemporaryFile
+
+    def read_only(*args: object, dir: str | Path | None = None, **kwargs: object):  # noqa: A002
+        if dir is not None and Path(dir).is_relative_to(copy):
+            raise PermissionError(30, "Read-only file system")
+        return real(*args, dir=dir, **kwargs)
+
+    monkeypatch.setattr(tempfile, "TemporaryFile", read_only)
+    message = f"cannot write {copy / 'evaluation' / 'trained-ckpt_000000000200.json'}"
+    assert_one_error_line(main, [f"run_dir={copy}", "episodes=2"], message, capsys)
+    assert not (copy / "evaluation").exists()  # the probe's directory is removed again
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into a chmod 0o555 directory")
+def test_chmod_read_only_run_dir(
+    run_dir: Path, tmp_path: Path, no_eval: None, capsys: pytest.CaptureFixture[str]
+) -> None:
+    copy = copy_run(run_dir, tmp_path / "run")
+    copy.chmod(0o555)
+    try:
+        assert_one_error_line(main, [f"run_dir={copy}", "policy=random"], "out=<file", capsys)
+    finally:
+        copy.chmod(0o755)
+    assert not (copy / "evaluation").exists()
+
+
+def test_out_under_a_file_fails_before_episodes(tmp_path: Path) -> None:
+    """out=<file>/x.json cannot be written, not even by root: one line, exit 2, and no episode
+    ran (the eval fault point would have killed the process)."""
+    blocker = tmp_path / "a-file"
+    blocker.write_text("not a directory\n")
+    env = {**os.environ, "RLPIPE_FAULT": "eval"}
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "rlpipe.evaluate",
+            "policy=random",
+            "env=cartpole",
+            "video=true",
+            f"out={blocker / 'sub' / 'x.json'}",
+        ],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode != -signal.SIGKILL, "an episode ran before the check"
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1, proc.stderr
+    assert lines[0] == (
+        f"rlpipe: error: cannot write {blocker / 'sub' / 'x.json'}: {blocker} is not a "
+        "directory; pick a writable place for the summary with out=<file.json>"
+    )
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a-file"]
+
+
+def write_probe_module(directory: Path) -> Path:
+    """A module that leaves a marker when imported and registers a CartPole under its id."""
+    marker = directory / "imported.txt"
+    (directory / "rlpipe_probe_env.py").write_text(
+        "import pathlib\n"
+        "import gymnasium as gym\n"
+        f"pathlib.Path({str(marker)!r}).write_text('imported')\n"
+        "gym.register('ProbeCartPole-v0', entry_point='gymnasium.envs.classic_control:CartPoleEnv',"
+        " max_episode_steps=50)\n"
+    )
+    return marker
+
+
+@pytest.mark.parametrize("policy", ["trained", "random"])
+def test_run_dir_env_import_refused(
+    run_dir: Path,
+    tmp_path: Path,
+    policy: str,
+    no_eval: None,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """A run dir is data: env.id=module:Id in its config.yaml imports nothing by default."""
+    copy = copy_run(run_dir, tmp_path / "run")
+    config = copy / "config.yaml"
+    config.write_text(
+        config.read_text().replace("id: CartPole-v1", "id: rlpipe_probe_env:ProbeCartPole-v0")
+    )
+    marker = write_probe_module(tmp_path)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    argv = [f"run_dir={copy}", f"policy={policy}"]
+    assert_one_error_line(main, argv, "allow_env_import=true", capsys)
+    assert not marker.exists()
+    assert not (copy / "evaluation").exists()
+
+
+def test_run_dir_env_import_allowed(
+    run_dir: Path,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    copy = copy_run(run_dir, tmp_path / "run")
+    config = copy / "config.yaml"
+    config.write_text(
+        config.read_text().replace("id: CartPole-v1", "id: rlpipe_probe_env:ProbeCartPole-v0")
+    )
+    marker = write_probe_module(tmp_path)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    main([f"run_dir={copy}", "policy=random", "episodes=2", "allow_env_import=true"])
+    assert marker.exists()
+    assert "random on rlpipe_probe_env:ProbeCartPole-v0" in capsys.readouterr().out
+    assert (copy / "evaluation" / "random.json").is_file()
+    sys.modules.pop("rlpipe_probe_env", None)

@@ -2,20 +2,28 @@
 
 from __future__ import annotations
 
+import gc
+import os
+import subprocess
 import sys
+import textwrap
+import tracemalloc
 from pathlib import Path
 
 import pytest
+import torch
+from conftest import TINY
 from torchrl.record.loggers import CSVLogger, TensorboardLogger
 
 from rlpipe import LoggerConfig, make_logger
+from rlpipe import loggers as loggers_module
 from rlpipe.errors import RlpipeError
-from rlpipe.loggers import EXTRAS, TeeLogger, require_extra, takes_video
+from rlpipe.loggers import EXTRAS, CsvLogger, TeeLogger, require_extra, takes_video
 
 
 def test_csv_logger_writes_csv(tmp_path: Path) -> None:
     logger = make_logger(LoggerConfig("csv"), tmp_path)
-    assert isinstance(logger, CSVLogger)
+    assert isinstance(logger, CsvLogger)
     logger.log_scalar("eval/return_mean", 12.5, step=100)
     logger.log_scalar("eval/return_mean", 20.0, step=200)
     logger.shutdown()
@@ -59,9 +67,138 @@ def test_tensorboard_writes_events_and_csv(tmp_path: Path) -> None:
         pytest.skip(str(err))
     logger = make_logger(LoggerConfig("tensorboard"), tmp_path / "run")
     assert isinstance(logger, TeeLogger)
-    assert [type(inner) for inner in logger.loggers] == [CSVLogger, TensorboardLogger]
+    assert [type(inner) for inner in logger.loggers] == [CsvLogger, TensorboardLogger]
     assert takes_video(logger)
     logger.log_scalar("eval/return_mean", 3.0, step=1)
     logger.shutdown()
     assert list((tmp_path / "run" / "tensorboard").rglob("events.out.tfevents.*"))
     assert (tmp_path / "run" / "metrics" / "scalars" / "eval" / "return_mean.csv").is_file()
+
+
+def test_csv_files_match_torchrl_csv_logger(tmp_path: Path) -> None:
+    """The same files, byte for byte, as TorchRL's CSVLogger: old run dirs and readers work."""
+    ours = CsvLogger(exp_name="metrics", log_dir=tmp_path / "ours")
+    theirs = CSVLogger(exp_name="metrics", log_dir=str(tmp_path / "theirs"))
+    values = [12.5, 3, float("nan"), float("-inf"), 1e-20, torch.tensor(2.5), -0.0]
+    for logger in (ours, theirs):
+        for step, value in enumerate(values):
+            logger.log_scalar("eval/return_mean", value, step=100 * step)
+            logger.log_scalar("train/loss", value, step=7 * step)
+            logger.log_scalar("time/fps", value)  # no step: counts rows, as TorchRL does
+        logger.shutdown()
+    for name in ("eval/return_mean", "train/loss", "time/fps"):
+        mine = (tmp_path / "ours" / "metrics" / "scalars" / f"{name}.csv").read_bytes()
+        assert mine == (tmp_path / "theirs" / "metrics" / "scalars" / f"{name}.csv").read_bytes()
+        assert mine.count(b"\n") == len(values)
+
+
+def test_csv_logger_appends_and_rows_are_on_disk_at_once(tmp_path: Path) -> None:
+    """A resumed run appends to its files; each row is in the file as soon as it is logged."""
+    path = tmp_path / "metrics" / "scalars" / "eval" / "return_mean.csv"
+    path.parent.mkdir(parents=True)
+    path.write_text("100,1.0\n")
+    logger = CsvLogger(log_dir=tmp_path)
+    logger.log_scalar("eval/return_mean", 2.0, step=200)
+    assert path.read_text() == "100,1.0\n200,2.0\n"  # not buffered: no flush, no shutdown
+    logger.shutdown()
+    logger.shutdown()  # twice is fine
+    assert path.read_text() == "100,1.0\n200,2.0\n"
+
+
+def test_csv_logger_bounds_open_files(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(loggers_module, "MAX_OPEN_FILES", 3)
+    logger = CsvLogger(log_dir=tmp_path)
+    for step in range(4):
+        for metric in range(10):
+            logger.log_scalar(f"group/m{metric}", metric + step, step=step)
+            assert len(logger._files) <= 3
+    logger.shutdown()
+    assert not logger._files
+    for metric in range(10):
+        path = tmp_path / "metrics" / "scalars" / "group" / f"m{metric}.csv"
+        assert path.read_text() == "".join(f"{s},{float(metric + s)}\n" for s in range(4))
+
+
+def test_csv_logger_takes_no_video_and_no_hparams(tmp_path: Path) -> None:
+    logger = CsvLogger(log_dir=tmp_path)
+    assert not takes_video(logger)
+    with pytest.raises(NotImplementedError):
+        logger.log_video("eval/video", torch.zeros(1, 2, 3, 4, 4), step=1)
+    logger.log_hparams({"lr": 0.1})  # config.yaml holds them
+    logger.shutdown()
+    assert not any(tmp_path.iterdir())  # nothing written until a scalar is logged
+
+
+def test_csv_logger_memory_is_flat(tmp_path: Path) -> None:
+    """No row stays in memory (TorchRL's CSVLogger keeps them all: ~2 MB for these rows)."""
+    logger = CsvLogger(log_dir=tmp_path)
+    names = [f"train/metric_{i}" for i in range(20)]
+    for step in range(50):  # warm up: files open, dicts sized
+        for name in names:
+            logger.log_scalar(name, 1.5, step=step)
+    gc.collect()
+    tracemalloc.start()
+    try:
+        before = tracemalloc.get_traced_memory()[0]
+        for step in range(1000):
+            for name in names:
+                logger.log_scalar(name, step * 0.5, step=step)  # 20,000 rows
+        gc.collect()
+        grown = tracemalloc.get_traced_memory()[0] - before
+    finally:
+        tracemalloc.stop()
+        logger.shutdown()
+    assert grown < 20_000, f"logger memory grew by {grown} bytes over 20,000 rows"
+    assert (tmp_path / "metrics" / "scalars" / "train" / "metric_0.csv").read_text().count(
+        "\n"
+    ) == 1050
+
+
+FULL_DISK_SCRIPT = textwrap.dedent(
+    """
+    import sys
+    from rlpipe.loggers import CsvLogger
+
+    logger = CsvLogger(log_dir=sys.argv[1])  # kept alive until the interpreter exits
+    logger.log_scalar("train/loss", 1.0, step=1)
+    try:
+        logger.log_scalar("eval/return_mean", 1.0, step=1)
+    except OSError as err:
+        print("raised", err.errno)
+    logger.log_scalar("train/loss", 2.0, step=2)
+    """
+)
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full")
+def test_csv_logger_on_a_full_disk(tmp_path: Path) -> None:
+    """ENOSPC propagates from log_scalar, and nothing fails again at interpreter exit."""
+    full = tmp_path / "metrics" / "scalars" / "eval" / "return_mean.csv"
+    full.parent.mkdir(parents=True)
+    full.symlink_to("/dev/full")  # every write: ENOSPC
+    proc = subprocess.run(
+        [sys.executable, "-c", FULL_DISK_SCRIPT, str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == "raised 28"  # ENOSPC
+    assert "Exception ignored" not in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
+    loss = tmp_path / "metrics" / "scalars" / "train" / "loss.csv"
+    assert loss.read_text() == "1,1.0\n2,2.0\n"  # the other metrics go on
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full")
+def test_training_on_a_full_disk_fails_with_one_line(tmp_path: Path, rlpipe_cli) -> None:
+    """A run whose metric write hits ENOSPC: one error line, no traceback wall at exit."""
+    run_dir = tmp_path / "run"
+    full = run_dir / "metrics" / "scalars" / "eval" / "return_mean.csv"
+    full.parent.mkdir(parents=True)
+    full.symlink_to("/dev/full")
+    proc = rlpipe_cli("algo=dqn", *TINY, run_dir=run_dir)
+    assert proc.returncode == 2
+    assert proc.stderr.strip().splitlines() == [
+        f"rlpipe: error: cannot write metrics in {run_dir}: No space left on device; free some "
+        "disk space or pick a writable hydra.run.dir, then resume"
+    ]

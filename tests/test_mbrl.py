@@ -13,7 +13,9 @@ import torch
 from torchrl.envs import ExplorationType, set_exploration_type
 
 from rlpipe.algos import MBRL, Algorithm, MBRLConfig
+from rlpipe.algos.base import EPISODE_RETURN
 from rlpipe.algos.mbrl import ActionCoder, EnsembleMLP, Planner, WorldModel
+from rlpipe.algos.mbrl.algorithm import _sub_batch_steps
 from rlpipe.config import EnvConfig
 from rlpipe.envs import make_env
 from rlpipe.errors import RlpipeError
@@ -230,6 +232,86 @@ def test_pendulum_steps_fit_and_resume_exactly():
     assert algo.fit() == restored.fit()
     algo.close()
     restored.close()
+
+
+def checkpoint(algo: MBRL) -> dict:
+    buf = io.BytesIO()
+    torch.save(algo.state_dict(), buf)
+    buf.seek(0)
+    return torch.load(buf, weights_only=True)
+
+
+def test_should_stop_ends_the_step_after_a_sub_batch_in_a_consistent_state():
+    """A signal mid-collection: return after the current sub-batch without fitting, every frame
+    stored and normalised; the next step completes the iteration and fits, also after a resume."""
+    torch.manual_seed(0)
+    # 2 envs x 20 steps per iteration, in sub-batches of 10 steps
+    cfg = MBRLConfig(**{**SMALL, "frames_per_batch": 40})
+    envs = partial(make_env, PENDULUM, num_envs=2, seed=0)
+    algo = MBRL(envs, cfg)
+    algo.should_stop = lambda: algo.frames > 0  # True once the first sub-batch is in
+    metrics = algo.train_step()
+    assert 0 < algo.frames < cfg.frames_per_batch and algo.frames == 20
+    assert len(algo.buffer) == algo.frames == int(algo.model.obs_norm.count)
+    assert algo.iterations == 1
+    assert "train/model_loss" not in metrics and not algo.optimizer.state  # the fit is skipped
+    assert algo.mpc.warmup  # random actions until the first fit
+
+    state = checkpoint(algo)  # a resume point
+    restored = MBRL(envs, cfg)
+    restored.load_state_dict(state)
+    assert restored.frames == 20 and len(restored.buffer) == 20
+    assert restored.mpc.warmup  # 20 >= warmup_frames, but no fit yet
+
+    algo.should_stop = lambda: False
+    for run in (algo, restored):  # the rest of the iteration, then the fit
+        metrics = run.train_step()
+        assert run.frames == len(run.buffer) == cfg.frames_per_batch
+        assert int(run.model.obs_norm.count) == cfg.frames_per_batch
+        assert "train/model_loss" in metrics and not run.mpc.warmup
+    algo.train_step()  # a whole iteration again
+    assert algo.frames == len(algo.buffer) == 2 * cfg.frames_per_batch and algo.iterations == 3
+    algo.close()
+    restored.close()
+
+
+def test_should_stop_ends_the_fit_after_an_adam_step():
+    torch.manual_seed(0)
+    cfg = MBRLConfig(**{**SMALL, "frames_per_batch": 40})
+    algo = MBRL(partial(make_env, PENDULUM, num_envs=2, seed=0), cfg)
+    algo.should_stop = lambda: algo.frames >= 40  # the signal comes during the last sub-batch
+    metrics = algo.train_step()
+    assert algo.frames == len(algo.buffer) == 40
+    assert "train/model_loss" in metrics and "train/val_dynamics_loss" in metrics
+    steps = {int(s["step"]) for s in algo.optimizer.state.values()}
+    assert steps == {1}, f"{cfg.fit_steps} fit steps configured, one expected, got {steps}"
+    assert not algo.mpc.warmup
+    restored = MBRL(partial(make_env, PENDULUM, num_envs=2, seed=0), cfg)
+    restored.load_state_dict(checkpoint(algo))
+    assert not restored.mpc.warmup  # fitted
+    algo.close()
+    restored.close()
+
+
+def test_episode_metrics_cover_every_sub_batch():
+    torch.manual_seed(0)
+    # 2 envs x 48 steps in 3 sub-batches of 16 steps; random CartPole episodes end within them
+    cfg = MBRLConfig(**{**SMALL, "frames_per_batch": 96, "warmup_frames": 1000})
+    algo = MBRL(partial(make_env, EnvConfig(id="CartPole-v1", num_envs=2), seed=0), cfg)
+    assert algo.collector.requested_frames_per_batch == 32
+    metrics = algo.train_step()
+    assert algo.frames == len(algo.buffer) == 96
+    # episodes end only by termination here (no truncation within 48 steps)
+    terminated = int(algo.buffer[:96]["next", "terminated"].sum())
+    assert terminated >= 3 and len(metrics[EPISODE_RETURN]) == terminated
+    algo.close()
+
+
+@pytest.mark.parametrize(
+    "steps, expected", [(200, 10), (100, 10), (10, 10), (32, 16), (16, 16), (101, 1), (1, 1)]
+)
+def test_sub_batches_add_up_to_the_iteration(steps, expected):
+    assert _sub_batch_steps(steps) == expected
 
 
 def test_discrete_env_learns_termination():

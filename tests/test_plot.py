@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import os
+import shutil
+import sys
+import tempfile
 from pathlib import Path
 
 import matplotlib.image as mpimg
@@ -78,7 +82,8 @@ def test_plot_default_out_is_in_the_dir(runs: list[Path], tmp_path: Path) -> Non
         (["EMPTY"], "no metrics under"),
         (["EMPTY/missing"], "is not a directory"),
         (["RUN", "agg=median"], "agg must be one of"),
-        (["RUN", "colour=red"], "unknown option"),
+        (["RUN", "colour=red"], "unknown option 'colour'"),
+        (["EMPTY/lr=0.1"], "lr=0.1 is not a directory (nor an option: agg, svg, metric, out)"),
         ([], "pass at least one run dir"),
     ],
 )
@@ -107,3 +112,80 @@ def test_plot_no_metrics_cli(tmp_path: Path) -> None:
     assert len(lines) == 1, proc.stderr
     assert lines[0].startswith("rlpipe: error: no metrics under")
     assert not list(tmp_path.rglob("*.png"))
+
+
+def test_plot_dir_with_equals_sign(
+    runs: list[Path],
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """outputs/lr=0.1/ is a directory, not an option: existing paths win."""
+    sweep = tmp_path / "outputs" / "lr=0.1"
+    shutil.copytree(runs[0], sweep / "0")
+    shutil.copytree(runs[1], sweep / "1")
+    monkeypatch.chdir(tmp_path)
+    main(["outputs/lr=0.1/", "agg=iqm"])
+    assert "1 group(s) from 2 run(s)" in capsys.readouterr().out
+    assert_picture(sweep / "curves.png")
+    monkeypatch.chdir(tmp_path / "outputs")
+    main(["lr=0.1", "out=../here.png"])  # a bare name with = that exists: a directory too
+    assert_picture(tmp_path / "here.png")
+
+
+def no_drawing(*args: object, **kwargs: object) -> None:
+    raise AssertionError("drew before the output location was checked")
+
+
+def test_plot_out_under_a_file(
+    runs: list[Path],
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    monkeypatch.setattr(sys.modules["rlpipe.plot"], "plot_groups", no_drawing)
+    blocker = tmp_path / "a-file"
+    blocker.write_text("x\n")
+    out = blocker / "curves.png"
+    message = f"cannot write {out}: {blocker} is not a directory; pick a writable place with out="
+    assert_one_error_line(main, [str(runs[0]), f"out={out}"], message, capsys)
+
+
+def test_plot_read_only_run_dir(
+    runs: list[Path],
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """The default out, <DIR>/curves.png, in a dir that takes no new file (simulated: root
+    writes through chmod 0o555): one line naming it, before anything is drawn."""
+    monkeypatch.setattr(sys.modules["rlpipe.plot"], "plot_groups", no_drawing)
+    copy = tmp_path / "run"
+    shutil.copytree(runs[0], copy)
+    (copy / "curves.png").unlink(missing_ok=True)
+    real = tempfile.TemporaryFile
+
+    def read_only(*args: object, dir: str | Path | None = None, **kwargs: object):  # noqa: A002
+        if dir is not None and Path(dir) == copy:
+            raise PermissionError(30, "Read-only file system")
+        return real(*args, dir=dir, **kwargs)
+
+    monkeypatch.setattr(tempfile, "TemporaryFile", read_only)
+    message = f"cannot write {copy / 'curves.png'}: Read-only file system; pick a writable place"
+    assert_one_error_line(main, [str(copy)], message, capsys)
+    assert not (copy / "curves.png").exists()
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into a chmod 0o555 directory")
+def test_plot_chmod_read_only_run_dir(
+    runs: list[Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    copy = tmp_path / "run"
+    shutil.copytree(runs[0], copy)
+    (copy / "curves.png").unlink(missing_ok=True)
+    copy.chmod(0o555)
+    try:
+        assert_one_error_line(main, [str(copy)], "out=<file.png>", capsys)
+    finally:
+        copy.chmod(0o755)
+    assert not (copy / "curves.png").exists()

@@ -39,6 +39,9 @@ class Algorithm(Protocol):
     budget: int | None  # the algorithm's own budget in iterations (REINFORCE epochs, ARS
     # iterations); None: none, the run's total_frames decides
     finite_keys: ClassVar[tuple[str, ...]]  # metrics that must stay finite (else: diverged)
+    # optional: `divergence_hint` (str), the advice a divergence error ends with, and
+    # `should_stop` (a callable the runner sets: True once SIGINT/SIGTERM arrived), which a
+    # long train_step may poll to end its iteration early in a consistent state
 
     def train_step(self) -> Metrics:
         """Run one iteration (collect and update); advance ``frames``; return metrics."""
@@ -103,6 +106,12 @@ class EnvAlgorithm:
     finite_keys: ClassVar[tuple[str, ...]] = (LOSS,)
     state_attrs: ClassVar[tuple[str, ...]] = ()
     budget: int | None = None  # frames only: the run's total_frames
+    divergence_hint = "try a smaller algo.lr"
+
+    @staticmethod
+    def should_stop() -> bool:
+        """Whether a signal asks the current iteration to end early (the runner replaces it)."""
+        return False
 
     def __init__(self, env_factory: EnvFactory, cfg: Any, *, device: str | torch.device = "cpu"):
         self.cfg = cfg

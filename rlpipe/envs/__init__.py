@@ -85,11 +85,36 @@ def make_env(
         ) from err
     except TypeError as err:
         raise RlpipeError(f"bad env.kwargs for {cfg.id!r}: {err}") from err
+    _check_spaces(cfg.id, venv)
     base = GymWrapper(venv, categorical_action_encoding=True, device=device)
     env = TransformedEnv(base, Compose(DoubleToFloat(), StepCounter(), InitTracker(), RewardSum()))
     if seed is not None:
         env.set_seed(seed)
     return env
+
+
+SUPPORTED_SPACES = (
+    gym.spaces.Box,
+    gym.spaces.Discrete,
+    gym.spaces.MultiDiscrete,
+    gym.spaces.MultiBinary,
+    gym.spaces.Dict,
+)
+
+
+def _check_spaces(env_id: str, venv: gym.vector.VectorEnv) -> None:
+    """Refuse observation/action spaces TorchRL's wrapper cannot batch (Tuple, Sequence, ...)."""
+    for what, space in (
+        ("observation", venv.single_observation_space),
+        ("action", venv.single_action_space),
+    ):
+        if not isinstance(space, SUPPORTED_SPACES):
+            venv.close()
+            raise RlpipeError(
+                f"{env_id!r} has a {type(space).__name__} {what} space, which rlpipe cannot "
+                "batch; wrap the env (e.g. gymnasium.wrappers.FlattenObservation) and register "
+                "the wrapped id"
+            )
 
 
 def _batched_entry_point(env_id: str) -> bool:

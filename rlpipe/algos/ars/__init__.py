@@ -13,11 +13,12 @@ frozen in between.
 - :mod:`~rlpipe.algos.ars.rollout`: one episode per member on the gymnasium copies (its
   ``rollout`` function is not re-exported here, where it would hide the module);
 - :mod:`~rlpipe.algos.ars.population`: the policy as NumPy functions of a population;
-- :mod:`~rlpipe.algos.ars.backends`: this process, worker processes or Ray actors.
+- :mod:`~rlpipe.algos.ars.backends`: this process, worker processes or Ray actors (a worker
+  process that dies raises :class:`WorkerDied`).
 """
 
 from rlpipe.algos.ars.algorithm import ARS, ARSConfig, RayConfig, make_ars_policy
-from rlpipe.algos.ars.backends import BACKENDS
+from rlpipe.algos.ars.backends import BACKENDS, WorkerDied
 from rlpipe.algos.ars.population import PopulationPolicy, batched_call, numpy_layer
 from rlpipe.algos.ars.rollout import RolloutResult
 from rlpipe.algos.ars.search import ARSSearch, ars_update
@@ -30,6 +31,7 @@ __all__ = [
     "PopulationPolicy",
     "RayConfig",
     "RolloutResult",
+    "WorkerDied",
     "ars_update",
     "batched_call",
     "make_ars_policy",

@@ -24,6 +24,8 @@ from rlpipe.normalizer import Normalizer
 __all__ = ["ARS", "ARSConfig", "RayConfig", "make_ars_policy"]
 
 POLICIES = ("linear", "mlp")
+# the search's timing figures, which differ between identical runs: logged under time/
+TIMINGS = ("steps_per_second", "rollout_cpu_seconds")
 
 
 @dataclass
@@ -77,6 +79,7 @@ class ARS:
     """
 
     finite_keys = ()  # the runner checks the policy's parameters
+    divergence_hint = "try a smaller algo.step_size or algo.noise"  # the end of its error
 
     def __init__(
         self, env_factory: EnvFactory, cfg: ARSConfig, *, device: str | torch.device = "cpu"
@@ -112,7 +115,7 @@ class ARS:
     def train_step(self) -> Metrics:
         stats = self.search.step()
         self.frames += int(stats["env_steps"])  # every step of every perturbed rollout
-        return {f"train/{key}": value for key, value in stats.items()}
+        return {f"{'time' if key in TIMINGS else 'train'}/{key}": v for key, v in stats.items()}
 
     def state_dict(self) -> dict[str, Any]:
         # the search's keys beside frames: the layout ARS checkpoints have always had

@@ -8,12 +8,17 @@ out its chunk as one batch to the end and sending back only returns and observat
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
 import multiprocessing as mp
 import os
 import signal
 import socket
+import sys
+import time
+import weakref
 from dataclasses import dataclass
-from multiprocessing.connection import wait
+from multiprocessing.connection import Connection, wait
 from typing import Any, Protocol
 
 import cloudpickle
@@ -24,7 +29,7 @@ from rlpipe.algos.ars.rollout import RolloutResult, Rollouts
 from rlpipe.envs import EnvFactory
 from rlpipe.errors import RlpipeError, check
 
-__all__ = ["BACKENDS", "RAY_INSTALL", "Backend", "Shares", "start_backend"]
+__all__ = ["BACKENDS", "RAY_INSTALL", "Backend", "Shares", "WorkerDied", "start_backend"]
 
 BACKENDS = ("local", "ray")
 CHUNKS_PER_WORKER = 8
@@ -158,56 +163,171 @@ class _Pool:
         raise NotImplementedError
 
 
+class WorkerDied(RlpipeError):
+    """A rollout worker process died (killed, out of memory, crashed) during an ARS iteration."""
+
+    def __init__(self, pid: int | None, how: str) -> None:
+        super().__init__(
+            f"an ARS rollout worker (pid {pid}) died: {how}; the last checkpoint is intact, "
+            "resume the run with resume=<run dir>"
+        )
+        self.pid, self.how = pid, how
+
+
+# the parent ends of the pipes of every live worker pool of this process: a forked worker
+# inherits them all and closes them, so that a worker sees EOF (and exits) once its parent is
+# gone, and the parent sees EOF once a worker is gone
+_PARENT_ENDS: weakref.WeakSet[Connection] = weakref.WeakSet()
+PR_SET_PDEATHSIG = 1  # prctl(2): the signal a process gets when its parent dies
+CLOSE_SECONDS = 10.0  # how long close() lets the workers finish before it terminates them
+
+
 class _Processes(_Pool):
-    """Worker processes on this machine, one pipe each."""
+    """Worker processes on this machine, one pipe each.
+
+    Workers never outlive this process, whatever ends it (SIGKILL included): each holds only
+    its own end of its pipe, so it sees EOF once the parent is gone, and on Linux the kernel
+    also kills it when the parent dies (``PR_SET_PDEATHSIG``; strictly, when the *thread* that
+    started the pool ends, so start and use a pool in a thread that outlives it). A worker that
+    dies raises :class:`WorkerDied` in the parent, which never waits on a dead worker; the other
+    workers are stopped at once and the pool cannot be used again.
+    """
 
     def __init__(self, units: _Units, population: int, workers: int) -> None:
         super().__init__(units, population, workers)
-        ctx = mp.get_context(_start_method())
-        self._procs: list[Any] = []
-        for w in range(workers):
-            parent, child = ctx.Pipe()
-            payload = cloudpickle.dumps(units.args(w, self.chunk_size))
-            proc = ctx.Process(target=_worker, args=(child, payload), daemon=True)
-            proc.start()
-            child.close()
-            self.workers.append(parent)
-            self._procs.append(proc)
-        for conn in self.workers:
-            conn.recv()  # wait until every worker has built its envs
+        method = _start_method()
+        ctx = mp.get_context(method)
+        self._procs: dict[Connection, Any] = {}  # parent end -> its worker process
+        self._failure: WorkerDied | None = None
+        try:
+            for w in range(workers):
+                parent, child = ctx.Pipe()
+                _PARENT_ENDS.add(parent)
+                # a forked worker inherits every parent end (its own too) and closes them; a
+                # spawned one gets only its child end (and any connection in its arguments)
+                inherited = list(_PARENT_ENDS) if method == "fork" else []
+                payload = cloudpickle.dumps(units.args(w, self.chunk_size))
+                proc = ctx.Process(
+                    target=_worker, args=(child, payload, os.getpid(), inherited), daemon=True
+                )
+                self.workers.append(parent)
+                try:
+                    proc.start()
+                finally:
+                    child.close()
+                self._procs[parent] = proc
+            waiting = list(self.workers)
+            while waiting:  # until every worker has built its envs
+                for conn in self._wait(waiting):
+                    self._collect(conn)
+                    waiting.remove(conn)
+        except BaseException:
+            self._stop(grace=0.0)
+            raise
+
+    def roll_out(self, flat: torch.Tensor, seeds: torch.Tensor) -> Shares:
+        if self._failure is not None:
+            raise self._failure
+        return super().roll_out(flat, seeds)
 
     def _submit(self, worker: Any, *message: Any) -> Any:
-        worker.send(message)
+        try:
+            worker.send(message)
+        except OSError as err:  # BrokenPipeError, ConnectionResetError: the worker is gone
+            raise self._died(self._procs[worker]) from err
         return worker
 
     def _wait(self, handles: list[Any]) -> list[Any]:
-        return wait(handles)
+        # a dead worker's pipe is ready (at EOF), unless something else still holds its end:
+        # its process's sentinel is ready in any case
+        sentinels = {proc.sentinel: proc for proc in self._procs.values()}
+        ready = wait([*handles, *sentinels])
+        for handle in ready:
+            if handle in sentinels:
+                raise self._died(sentinels[handle])
+        return ready
 
     def _collect(self, handle: Any) -> RolloutResult:
-        return handle.recv()
+        try:
+            return handle.recv()
+        except (EOFError, OSError) as err:  # the worker died (maybe mid-message)
+            raise self._died(self._procs[handle]) from err
+
+    def _died(self, proc: Any) -> WorkerDied:
+        """The error for ``proc``'s death; the other workers are stopped at once."""
+        proc.join(timeout=1)  # its exit code is set once it is reaped
+        code = proc.exitcode
+        if code is None:
+            how = "its pipe broke (it was still running; it is stopped now)"
+        elif code < 0:
+            how = f"killed by {_signal_name(-code)}"
+        else:
+            how = f"exited with code {code}"
+        self._failure = WorkerDied(proc.pid, how)
+        self._stop(grace=0.0)
+        return self._failure
 
     def close(self) -> None:
+        self._stop(grace=CLOSE_SECONDS)
+
+    def _stop(self, grace: float) -> None:
+        """Ask the workers to stop (``grace`` > 0) and wait up to ``grace`` seconds for them
+        all, then terminate (and at last kill) those still running. Never raises or hangs."""
         for conn in self.workers:
-            conn.send(None)
+            if grace > 0:
+                with contextlib.suppress(OSError):  # a dead worker's pipe is broken
+                    conn.send(None)
             conn.close()
-        for proc in self._procs:
-            proc.join(timeout=10)
-        self.workers, self._procs = [], []
+            _PARENT_ENDS.discard(conn)
+        procs = list(self._procs.values())
+        self.workers, self._procs = [], {}
+        deadline = time.monotonic() + grace
+        for proc in procs:
+            proc.join(timeout=max(deadline - time.monotonic(), 0))
+        for stop in ("terminate", "kill"):
+            running = [proc for proc in procs if proc.is_alive()]
+            for proc in running:
+                getattr(proc, stop)()
+            for proc in running:
+                proc.join(timeout=1)
 
 
-def _worker(conn: Any, payload: bytes) -> None:
+def _signal_name(number: int) -> str:
+    try:
+        return signal.Signals(number).name
+    except ValueError:
+        return f"signal {number}"
+
+
+def _worker(conn: Any, payload: bytes, parent_pid: int, inherited: list[Connection]) -> None:
     # Ctrl-C reaches the whole process group: the parent checkpoints and stops the workers
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    for end in inherited:  # the parent's ends: only the parent may hold them
+        end.close()
+    if not _die_with_parent(parent_pid):
+        return
     torch.set_num_threads(1)
     rollouts = Rollouts(*cloudpickle.loads(payload))
-    conn.send(None)  # ready
     try:
+        conn.send(None)  # ready
         while (message := conn.recv()) is not None:
             conn.send(rollouts.run(*message))
-    except (EOFError, BrokenPipeError):  # the parent exited (or was killed) without close()
+    except (EOFError, BrokenPipeError, ConnectionResetError):  # the parent died without close()
         pass
     finally:
         rollouts.close()
+
+
+def _die_with_parent(parent_pid: int) -> bool:
+    """Have the kernel SIGKILL this process when its parent dies (Linux; elsewhere nothing);
+    False if the parent (``parent_pid``) is already gone."""
+    if sys.platform.startswith("linux"):
+        try:
+            prctl = ctypes.CDLL(None, use_errno=True).prctl
+            prctl(PR_SET_PDEATHSIG, ctypes.c_ulong(signal.SIGKILL), *[ctypes.c_ulong(0)] * 3)
+        except (AttributeError, OSError):  # no prctl in this libc
+            pass
+    return os.getppid() == parent_pid  # it may have died before the kernel watched it
 
 
 def _start_method() -> str:

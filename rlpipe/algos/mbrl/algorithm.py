@@ -3,6 +3,7 @@ models, plan on them (PETS-style, deterministic ensemble). See :mod:`rlpipe.algo
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -22,6 +23,9 @@ from rlpipe.errors import RlpipeError, check
 PLANNERS = ("cem", "random")
 MODEL_LOSS = "train/model_loss"  # the models' mean training loss over a fit
 _EVAL_SEED = 0  # the greedy policy's sampling noise: the same for every call
+# env steps per collector batch, at most (single env: ~16 planner calls, ~1 s on 2 busy cores);
+# train_step polls should_stop between two such sub-batches
+_SUB_BATCH_STEPS = 16
 
 
 @dataclass
@@ -127,14 +131,22 @@ _STORED_KEYS = (
 class MBRL(EnvAlgorithm):
     """Model-based RL on a batched TorchRL env, discrete or bounded continuous actions.
 
-    Each :meth:`train_step` collects ``cfg.frames_per_batch`` frames with the MPC planner
-    (uniformly random actions for the first ``cfg.warmup_frames``) through TorchRL's
-    ``Collector``, stores the transitions in a ``ReplayBuffer`` (a random
-    ``cfg.validation_fraction`` of them marked for validation), and, once warm-up is done,
-    runs ``cfg.fit_steps`` Adam steps on the dynamics ensemble, reward and termination models
-    and logs their validation losses. The greedy ``policy`` plans at every step: an evaluation
-    costs ``eval_episodes × episode length / eval envs`` planner calls, each
-    ``cem_iterations × horizon`` batched model steps over (eval envs × candidates × members) rows.
+    Each :meth:`train_step` collects ``cfg.frames_per_batch`` frames (rounded up to whole steps
+    of the env's copies) with the MPC planner (uniformly random actions until the first fit,
+    which comes once ``cfg.warmup_frames`` are collected) through TorchRL's ``Collector``, stores
+    the transitions in a ``ReplayBuffer`` (a random ``cfg.validation_fraction`` of them marked for
+    validation), and, once warm-up is done, runs ``cfg.fit_steps`` Adam steps on the dynamics
+    ensemble, reward and termination models and logs their validation losses. The greedy
+    ``policy`` plans at every step: an evaluation costs ``eval_episodes × episode length / eval
+    envs`` planner calls, each ``cem_iterations × horizon`` batched model steps over (eval envs ×
+    candidates × members) rows.
+
+    The frames come in sub-batches of at most ``_SUB_BATCH_STEPS`` env steps, each stored (buffer,
+    normalisers, ``frames``) as it arrives, and :meth:`should_stop` is polled between two of them
+    and between two Adam steps: once it is True, ``train_step`` returns after the current
+    sub-batch (skipping the fit) or Adam step, and a checkpoint taken then is a valid resume
+    point. The next ``train_step`` completes the interrupted iteration (collects up to the next
+    multiple of the iteration's frames), so fits come at the same frame counts as without a stop.
     """
 
     cfg: MBRLConfig
@@ -172,13 +184,36 @@ class MBRL(EnvAlgorithm):
             storage=LazyTensorStorage(cfg.buffer_size, device=self.device),
             batch_size=cfg.batch_size,
         )
-        self.collector = make_collector(env, self.policy, cfg.frames_per_batch, device)
+        num_envs = max(env.batch_size.numel(), 1)
+        steps = math.ceil(cfg.frames_per_batch / num_envs)  # per iteration
+        self.iteration_frames = steps * num_envs
+        sub_batch = _sub_batch_steps(steps) * num_envs
+        self.collector = make_collector(env, self.policy, sub_batch, device)
         self._batches = iter(self.collector)
 
     def train_step(self) -> Metrics:
-        batch = next(self._batches)
-        self.frames += batch.numel()
+        """Collect the rest of the iteration's frames sub-batch by sub-batch, then fit; return
+        early, without fitting, once :meth:`should_stop` is True (see the class docstring)."""
         self.iterations += 1
+        target = self.iteration_frames - self.frames % self.iteration_frames
+        collected = 0
+        metrics: Metrics = {}
+        while collected < target and not self.should_stop():
+            batch = next(self._batches)
+            self._store(batch)
+            collected += batch.numel()
+            for key, values in episode_metrics(batch).items():
+                metrics.setdefault(key, []).extend(values)
+        if collected < target:  # stopped: the next iteration fits on all the data
+            return metrics
+        if self.frames >= self.cfg.warmup_frames:
+            metrics.update(self.fit())
+            self.mpc.warmup = False
+        return metrics
+
+    def _store(self, batch: TensorDictBase) -> None:
+        """Count the frames of a collected batch, store them and fold them into the normalisers."""
+        self.frames += batch.numel()
         data = batch.reshape(-1).select(*_STORED_KEYS)
         held_out = torch.rand(len(data), generator=self.fit_generator)
         data["validation"] = (held_out < self.cfg.validation_fraction).to(self.device)
@@ -189,14 +224,10 @@ class MBRL(EnvAlgorithm):
             data["next", "terminated"],
         )
         self.buffer.extend(data)
-        metrics = episode_metrics(batch)
-        if self.frames >= self.cfg.warmup_frames:
-            metrics.update(self.fit())
-            self.mpc.warmup = False
-        return metrics
 
     def fit(self) -> Metrics:
-        """``cfg.fit_steps`` Adam steps on the models; training and validation losses."""
+        """``cfg.fit_steps`` Adam steps on the models (fewer once :meth:`should_stop` is True, at
+        least one); training and validation losses."""
         data = self.buffer[: len(self.buffer)]
         train, valid = data[~data["validation"]], data[data["validation"]]
         if len(train) == 0:
@@ -215,6 +246,8 @@ class MBRL(EnvAlgorithm):
             loss.backward()
             self.optimizer.step()
             totals.append(loss.detach())
+            if self.should_stop():
+                break
         metrics: Metrics = {MODEL_LOSS: float(torch.stack(totals).mean())}
         if len(valid):
             with torch.no_grad():
@@ -234,8 +267,18 @@ class MBRL(EnvAlgorithm):
         )
 
     def _restored(self) -> None:
-        self.mpc.warmup = self.frames < self.cfg.warmup_frames
+        # random actions until the first fit (an Adam step leaves optimiser state), also when a
+        # stop skipped the fit that ends the warm-up
+        fitted = bool(self.optimizer.state)
+        warmup = self.cfg.warmup_frames
+        self.mpc.warmup = self.frames < warmup or (warmup > 0 and not fitted)
 
     def close(self) -> None:
         """Stop the collector and close its env."""
         self.collector.shutdown()
+
+
+def _sub_batch_steps(steps: int) -> int:
+    """The largest divisor of an iteration's ``steps`` up to ``_SUB_BATCH_STEPS``: sub-batches
+    that add up to the iteration exactly."""
+    return max(k for k in range(1, min(steps, _SUB_BATCH_STEPS) + 1) if steps % k == 0)

@@ -1,0 +1,180 @@
+"""Metric CSVs at resume and after crashes: rows cut back to the checkpoint exactly once,
+atomic rewrites, damaged tails cut (truncate_metrics) or skipped (the readers)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rlpipe.errors import RlpipeError
+from rlpipe.figures import plot_run
+from rlpipe.files import TEMP_SUFFIX, check_writable
+from rlpipe.metrics import (
+    find_runs,
+    metric_path,
+    parse_rows,
+    read_metric,
+    truncate_metrics,
+)
+from rlpipe.plot import main as plot_main
+
+ROWS = b"0,1.5\n100,2.5\n200,3.5\n"
+
+
+def write_metric(run_dir: Path, name: str, data: bytes) -> Path:
+    path = metric_path(run_dir, name)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(data)
+    return path
+
+
+def warnings_of(err: str) -> list[str]:
+    return [line for line in err.splitlines() if line.startswith("rlpipe: warning:")]
+
+
+@pytest.mark.parametrize(
+    "tail",
+    [
+        pytest.param(b"\0" * 4096, id="nul-padding"),  # a power cut: the size grew, data did not
+        pytest.param(b"300,4.", id="torn-line"),  # killed in the middle of a write
+        pytest.param(b"\0\0\0\n300,4.5\n", id="nul-line-then-rows"),
+        pytest.param(b"garbage\n300,4.5\n", id="garbage"),
+        pytest.param(b"300\n", id="one-field"),
+    ],
+)
+def test_damaged_tail_is_cut_with_one_warning(
+    tmp_path: Path, tail: bytes, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = write_metric(tmp_path, "eval/return_mean", ROWS + tail)
+    truncate_metrics(tmp_path, 1_000)
+    assert path.read_bytes() == ROWS
+    lines = warnings_of(capsys.readouterr().err)
+    assert lines == [
+        f"rlpipe: warning: {path}: cut {len(tail)} damaged bytes at the end (a crash while writing)"
+    ]
+
+
+def test_damage_inside_the_kept_rows_ends_them(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = write_metric(tmp_path, "train/loss", b"0,1.0\n50,2.0\0\n100,3.0\n")
+    truncate_metrics(tmp_path, 100)
+    assert path.read_bytes() == b"0,1.0\n"
+    assert len(warnings_of(capsys.readouterr().err)) == 1
+
+
+def test_rows_past_the_checkpoint_are_cut_quietly(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    eval_path = write_metric(tmp_path, "eval/return_mean", ROWS)
+    loss_path = write_metric(tmp_path, "train/loss", b"10,0.5\n90,0.25\n110,0.125\n")
+    mode = 0o640
+    os.chmod(loss_path, mode)
+    truncate_metrics(tmp_path, 100)
+    assert eval_path.read_bytes() == b"0,1.5\n100,2.5\n"  # frames <= 100 kept
+    assert loss_path.read_bytes() == b"10,0.5\n90,0.25\n"
+    assert loss_path.stat().st_mode & 0o777 == mode
+    assert capsys.readouterr().err == ""
+    assert not list(tmp_path.rglob(f"*{TEMP_SUFFIX}"))
+    truncate_metrics(tmp_path, 0)
+    assert eval_path.read_bytes() == b"0,1.5\n" and loss_path.read_bytes() == b""
+
+
+def test_unchanged_files_are_not_touched(tmp_path: Path) -> None:
+    path = write_metric(tmp_path, "eval/return_mean", ROWS)
+    empty = write_metric(tmp_path, "train/loss", b"")
+    for p in (path, empty):
+        os.utime(p, ns=(1_000_000_000, 1_000_000_000))
+    before = [(p.stat().st_ino, p.stat().st_mtime_ns) for p in (path, empty)]
+    truncate_metrics(tmp_path, 200)
+    assert [(p.stat().st_ino, p.stat().st_mtime_ns) for p in (path, empty)] == before
+    assert path.read_bytes() == ROWS
+    truncate_metrics(tmp_path / "no-metrics-here", 0)  # no metrics dir: nothing to do
+
+
+def test_readers_skip_a_damaged_tail(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """read_metric, find_runs, curve.png and rlpipe.plot: no traceback, the good rows drawn."""
+    runs = [tmp_path / "sweep" / name for name in ("nul", "torn", "only-nul")]
+    write_metric(runs[0], "eval/return_mean", ROWS + b"\0" * 512)
+    write_metric(runs[1], "eval/return_mean", ROWS + b"300,4")
+    write_metric(runs[2], "eval/return_mean", b"\0" * 512)
+    for run in runs[:2]:
+        write_metric(run, "train/episode_return", b"5,1.0\n50,2.0\n\0\0")
+    frames, values = read_metric(runs[0], "eval/return_mean")
+    assert frames.tolist() == [0, 100, 200] and values.tolist() == [1.5, 2.5, 3.5]
+    assert read_metric(runs[1], "eval/return_mean")[0].tolist() == [0, 100, 200]
+    assert read_metric(runs[2], "eval/return_mean")[0].size == 0
+    assert find_runs([tmp_path / "sweep"]) == runs[:2]  # nothing readable in the third
+    assert plot_run(runs[0]).is_file()
+    plot_main([str(tmp_path / "sweep"), f"out={tmp_path / 'sweep.png'}"])
+    assert "from 2 run(s)" in capsys.readouterr().out
+    assert (tmp_path / "sweep.png").is_file()
+
+
+def test_parse_rows() -> None:
+    assert parse_rows(b"") == ([], 0)
+    rows, good = parse_rows(b"1,2\n3,nan\n")
+    assert good == 10 and rows[0] == (1.0, 2.0) and rows[1][0] == 3.0 and np.isnan(rows[1][1])
+    assert parse_rows(b"1,2\n3,4") == ([(1.0, 2.0)], 4)
+    assert parse_rows(b"1,2,3\n") == ([], 0)
+
+
+TRUNCATE = (
+    "import sys; from rlpipe.metrics import truncate_metrics; truncate_metrics(sys.argv[1], 100)"
+)
+
+
+# the 2nd rewrite killed: the 1st file is new, the rest old; only the slow suite kills the 1st
+@pytest.mark.parametrize("nth", [2, pytest.param(1, marks=pytest.mark.faults)])
+def test_killed_while_truncating_leaves_each_file_whole(tmp_path: Path, nth: int) -> None:
+    """SIGKILL at the truncate fault point (a trimmed copy written, not yet renamed): every CSV
+    holds its complete old or new content, and a later truncation finishes the job."""
+    old = {
+        "eval/return_mean": ROWS,
+        "train/loss": b"10,0.5\n150,0.25\n",
+        "train/episode_return": b"20,9.0\n120,11.0\n" + b"\0" * 100,
+        "time/fps": b"50,1000.0\n",  # unchanged: never rewritten
+    }
+    new = {
+        "eval/return_mean": b"0,1.5\n100,2.5\n",
+        "train/loss": b"10,0.5\n",
+        "train/episode_return": b"20,9.0\n",
+        "time/fps": b"50,1000.0\n",
+    }
+    for name, data in old.items():
+        write_metric(tmp_path, name, data)
+    env = {**os.environ, "RLPIPE_FAULT": f"truncate@{nth}"}
+    proc = subprocess.run(
+        [sys.executable, "-c", TRUNCATE, str(tmp_path)],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == -signal.SIGKILL, proc.stderr
+    assert len(list(tmp_path.rglob(f"*{TEMP_SUFFIX}"))) == 1  # killed with a copy not renamed
+    contents = {name: metric_path(tmp_path, name).read_bytes() for name in old}
+    changed = [name for name in old if contents[name] != old[name]]
+    assert len(changed) == nth - 1, contents  # files are done in order, one per fault point
+    for name, data in contents.items():
+        assert data in (old[name], new[name]), (name, data)
+    truncate_metrics(tmp_path, 100)  # the resume after the crash
+    assert {name: metric_path(tmp_path, name).read_bytes() for name in old} == new
+    assert not list(tmp_path.rglob(f"*{TEMP_SUFFIX}"))  # the killed run's copy is gone
+
+
+def test_check_writable_writes_nothing(tmp_path: Path) -> None:
+    check_writable(tmp_path / "a" / "b" / "out.json", "hint")
+    assert not any(tmp_path.iterdir())  # the probe's directories are gone again
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(RlpipeError, match=r"file is not a directory; use out=<file>$"):
+        check_writable(tmp_path / "file" / "deeper" / "out.json", "use out=<file>")
+    with pytest.raises(RlpipeError, match="cannot write .*: it is a directory; hint"):
+        check_writable(tmp_path, "hint")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
