@@ -98,8 +98,6 @@ def fitting(path: str | Path) -> Iterator[None]:
     algorithm's state, a bad RNG state) into one :class:`RlpipeError` line."""
     try:
         yield
-    except RlpipeError:
-        raise
     except Exception as err:  # noqa: BLE001  (load_state_dict raises many kinds)
         reason = str(err).strip().splitlines()[0] if str(err).strip() else ""
         raise RlpipeError(

@@ -165,7 +165,8 @@ def load_config(run_dir: str | Path, *, allow_env_import: bool = False) -> Confi
     )
     try:
         data = yaml.safe_load(path.read_text())
-        check(isinstance(data, dict) and isinstance(data.get("algo"), dict), "not a run config")
+        if not (isinstance(data, dict) and isinstance(data.get("algo"), dict)):
+            raise ValueError("not a run config")
         cfg = config_from_dict(data)
     except (RlpipeError, yaml.YAMLError, TypeError, ValueError, KeyError, AttributeError) as err:
         reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__

@@ -289,12 +289,11 @@ class Runner:
     def restore(self, state: dict[str, Any]) -> None:
         """Continue from a checkpoint :meth:`save` wrote (algorithm, RNGs, clocks, last
         evaluation)."""
-        check(
-            type(state["frames"]) is int and state["frames"] >= 0,
-            f"frames must be a whole number >= 0, got {state['frames']!r}",
-        )
+        if not (type(state["frames"]) is int and state["frames"] >= 0):
+            raise ValueError(f"frames must be a whole number >= 0, got {state['frames']!r}")
         self.algo.load_state_dict(state["algo"])
-        check(self.algo.frames == state["frames"], "the algorithm's frames disagree")
+        if self.algo.frames != state["frames"]:
+            raise ValueError("the algorithm's frames disagree with the checkpoint's")
         set_rng_state(state["rng"])
         runner = state["runner"]
         self._elapsed_before = float(runner["elapsed"])

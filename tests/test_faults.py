@@ -40,7 +40,7 @@ EPISODE_METRICS = {"train/episode_return", "train/episode_length"}
 
 # the kill matrix's runs, one tiny config per algorithm
 ALGOS = {
-    # 20 frames (2 envs x 10 steps) per iteration: 60 iterations, a checkpoint every 20
+    # 20 frames (2 envs x 10 steps) per iteration: 60 iterations (4 frames: 300, 4x slower)
     "dqn": [
         "total_frames=1200",
         "eval_every=400",
@@ -90,24 +90,21 @@ ALGOS = {
         "env.max_episode_steps=50",
     ],
 }
-# the first kill of the `truncate` case: after a checkpoint, with rows logged past it to cut.
-# DQN: iteration 30 (600 frames; checkpoint at 400). MBRL: iteration 4 (iteration 3's episodes
-# logged at 300; checkpoint at 200). REINFORCE and ARS checkpoint after every iteration, so the
-# rows past a checkpoint are those logged before the next one is written: kill in its write.
-TRUNCATE_SETUP = {
-    "dqn": "train_step@30",
-    "reinforce": "checkpoint_write@2",
-    "ars": "checkpoint_write@2",
-    "mbrl": "train_step@4",
-}
-POINTS = {
-    "train_step": ["train_step@1"],  # before the first checkpoint
-    "checkpoint_write": ["checkpoint_write@2"],
-    "eval_sigkill": ["eval@1"],
-    "eval_sigterm": ["eval@1:SIGTERM"],
-    "final_checkpoint": ["final_checkpoint"],
-    "summary": ["summary"],
-    "truncate": ["<setup>", "truncate"],
+# The kill matrix covers every fault point in chains of runs in one run dir: each run resumes the
+# dir the previous one's fault left (the same command, the next fault), the last runs clean. A
+# point's kill is followed by the resume the contract describes, in the code path it names, and
+# a run dir takes 3-4 runs instead of 2-3 per point (each run costs ~10 s of imports).
+CHAINS = {
+    # killed before the first checkpoint; the resume starts at zero and is killed after its
+    # final checkpoint, before summary.json; the clean resume only writes summary.json
+    "train_step+final_checkpoint": ["train_step@1", "final_checkpoint"],
+    # killed in the first evaluation (before the first checkpoint); the resume starts at zero
+    # and gets SIGTERM in its first evaluation: it checkpoints with the evaluation pending
+    "eval_sigkill+eval_sigterm": ["eval@1", "eval@1:SIGTERM"],
+    # killed writing the second checkpoint (rows past the first one are in the CSVs); the resume
+    # is killed trimming them; the next one finishes and is killed with summary.json's temp file
+    # written, not renamed; the clean resume writes it
+    "checkpoint_write+truncate+summary": ["checkpoint_write@2", "truncate", "summary"],
 }
 
 # a finished tiny DQN run (checkpoints at 100 and 200): the tampering and ownership share
@@ -236,6 +233,19 @@ def metric_rows(run_dir: Path) -> dict[str, list[int]]:
     }
 
 
+def assert_rows_once(run_dir: Path, end: int | None = None) -> dict[str, list[int]]:
+    """Every metric row of ``run_dir`` whole and logged once: frames non-decreasing, strictly
+    increasing but for episode metrics, none past ``end``; returns the rows' frames."""
+    rows = metric_rows(run_dir)
+    for name, frames in rows.items():
+        assert frames == sorted(frames), f"{name}: frames go back: {frames}"
+        if name not in EPISODE_METRICS:
+            assert len(set(frames)) == len(frames), f"{name}: a row logged twice: {frames}"
+        if end is not None and frames:
+            assert frames[-1] <= end, f"{name}: rows past the end: {frames}"
+    return rows
+
+
 def assert_run_intact(run_dir: Path, reference: Reference, *, tag: str | None = None) -> None:
     """``run_dir`` holds a whole run that ended like ``reference``: ``summary.json`` and the newest
     loadable checkpoint at its final frames, every metric row logged exactly once (frames
@@ -243,13 +253,7 @@ def assert_run_intact(run_dir: Path, reference: Reference, *, tag: str | None = 
     evaluations at the reference's frames, no temporary file, and no process of the run alive."""
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["frames"] == reference.frames, summary
-    rows = metric_rows(run_dir)
-    assert "eval/return_mean" in rows, sorted(rows)
-    for name, frames in rows.items():
-        assert frames == sorted(frames), f"{name}: frames go back: {frames}"
-        if name not in EPISODE_METRICS:
-            assert len(set(frames)) == len(frames), f"{name}: a row logged twice: {frames}"
-        assert not frames or frames[-1] <= reference.frames, f"{name}: rows past the end: {frames}"
+    rows = assert_rows_once(run_dir, reference.frames)
     assert tuple(rows["eval/return_mean"]) == reference.eval_frames
     temporary = [str(p) for p in run_dir.rglob("*.tmp")]
     assert not temporary, f"temporary files left: {temporary}"
@@ -303,9 +307,9 @@ def reference(tmp_path_factory) -> Callable[[str], Reference]:
 def _kill_cases() -> list:
     cases = []
     for algo in ALGOS:
-        for point in POINTS:
+        for chain in CHAINS:
             marks = () if algo == "dqn" else (FAULTS,)
-            cases.append(pytest.param(algo, point, marks=marks, id=f"{algo}-{point}"))
+            cases.append(pytest.param(algo, chain, marks=marks, id=f"{algo}-{chain}"))
     return cases
 
 
@@ -319,13 +323,13 @@ def _cut(data: bytes, frames: int) -> bytes:
     return b"".join(line + b"\n" for line in lines if int(line.partition(b",")[0]) <= frames)
 
 
-@pytest.mark.parametrize(("algo", "point"), _kill_cases())
-def test_a_run_killed_at_a_fault_point_resumes_intact(tmp_path, reference, algo, point):
+@pytest.mark.parametrize(("algo", "chain"), _kill_cases())
+def test_runs_killed_at_fault_points_resume_intact(tmp_path, reference, algo, chain):
     run_dir = tmp_path / "run"
     args = ["progress=false", *ALGOS[algo], f"hydra.run.dir={run_dir}"]
     tag = uuid.uuid4().hex
-    faults = [TRUNCATE_SETUP[algo] if f == "<setup>" else f for f in POINTS[point]]
-    for fault in faults:
+    ref = reference(algo)
+    for fault in CHAINS[chain]:
         before = _csv_bytes(run_dir) if fault == "truncate" else {}
         result = rlpipe(*args, cwd=tmp_path, tag=tag, fault=fault)
         # the fault fired: the run died of its signal (the truncate point is only reached when a
@@ -335,6 +339,12 @@ def test_a_run_killed_at_a_fault_point_resumes_intact(tmp_path, reference, algo,
             last = result.stderr.strip().splitlines()[-1]
             assert "SIGTERM" in last and f"resume={run_dir}" in last, result.stderr
             assert "Traceback" not in result.stderr
+            load_latest(run_dir / "checkpoints")  # it checkpointed before it stopped
+        if fault.startswith("checkpoint_write"):  # killed with the temporary file written
+            assert list((run_dir / "checkpoints").glob(".*.tmp")), "no checkpoint write killed"
+        if fault in ("final_checkpoint", "summary"):  # after the final checkpoint, no summary
+            assert load_latest(run_dir / "checkpoints")[1]["frames"] == ref.frames
+            assert not (run_dir / "summary.json").exists()
         if fault == "truncate":  # every CSV whole: its old bytes, or those cut to the checkpoint
             _, state = load_latest(run_dir / "checkpoints")
             after = _csv_bytes(run_dir)
@@ -342,13 +352,14 @@ def test_a_run_killed_at_a_fault_point_resumes_intact(tmp_path, reference, algo,
             for path, data in before.items():
                 assert after[path] in (data, _cut(data, state["frames"])), path
             assert list((run_dir / "metrics").rglob(".*.tmp")), "no trimmed copy was killed"
+        assert_rows_once(run_dir)
         assert_no_live_processes(tag)
 
     result = rlpipe(*args, cwd=tmp_path, tag=tag)
     assert result.returncode == 0, result.stderr
-    if point in ("final_checkpoint", "summary"):
+    if CHAINS[chain][-1] in ("final_checkpoint", "summary"):
         assert "already finished" in result.stdout, result.stdout
-    assert_run_intact(run_dir, reference(algo), tag=tag)
+    assert_run_intact(run_dir, ref, tag=tag)
 
 
 # ---------------------------------------------------------------------------------------------

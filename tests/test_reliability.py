@@ -169,11 +169,14 @@ def _copy_run(src: Path, dst: Path) -> Path:
 )
 def test_bad_resume_is_one_line_and_touches_nothing(tmp_path, finished_run, case, message):
     run_dir = _copy_run(finished_run, tmp_path / "run")
-    overrides = ["progress=false", "total_frames=300", f"resume={run_dir}"]
+    # the finished run's own settings (a run dir refuses another run before anything else)
+    same_run = ["env.num_envs=2", "algo.frames_per_batch=20", "algo.learning_starts=40"]
+    overrides = [*same_run, "algo.batch_size=16", "progress=false", "total_frames=300"]
+    overrides.append(f"resume={run_dir}")
     if case == "missing":
         overrides[-1] = f"resume={tmp_path / 'nowhere'}"
     elif case == "other_algo":
-        overrides.append("algo=reinforce")
+        overrides = [o for o in overrides if not o.startswith("algo.")] + ["algo=reinforce"]
     elif case == "other_env":
         overrides.append("env=mountaincar")
     elif case == "all_damaged":
@@ -186,14 +189,16 @@ def test_bad_resume_is_one_line_and_touches_nothing(tmp_path, finished_run, case
             path.unlink()
     elif case == "not_a_run":
         overrides[-1] = f"resume={tmp_path}"
-    before = {p: p.read_bytes() for p in run_dir.rglob("*") if p.is_file()}
+    # Hydra's job log (__main__.log) may be created empty, the lock file holds the last PID
+    before = {p: p.read_bytes() for p in run_dir.rglob("*") if p.is_file() and p.name != ".lock"}
     result = run_module("rlpipe", *overrides, cwd=tmp_path)
     assert result.returncode == 2, result.stderr
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("rlpipe: error: "), result.stderr
     assert message.format(tmp=tmp_path) in lines[0]
     assert "pwned" not in result.stdout
-    assert {p: p.read_bytes() for p in run_dir.rglob("*") if p.is_file()} == before
+    after = {p: p.read_bytes() for p in run_dir.rglob("*") if p.is_file()}
+    assert {p: v for p, v in after.items() if p.name not in ("__main__.log", ".lock")} == before
 
 
 def test_evaluate_on_a_run_without_checkpoint_is_one_line(tmp_path, finished_run):
