@@ -148,6 +148,8 @@ def format_error(err: BaseException) -> str:
     # Hydra's "... raised while composing config:" says what failed on the next line
     first = " ".join(lines[:2]) if lines[0].endswith(":") else lines[0]
     cause = err.__cause__
+    if isinstance(err, RlpipeError):  # already one line of ours (it may name a file it read)
+        return first
     if isinstance(cause, RlpipeError):
         return str(cause)
     if isinstance(cause, (MissingMandatoryValue, OmegaConfBaseException)):

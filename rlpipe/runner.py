@@ -6,7 +6,6 @@ import json
 import math
 import signal
 import time
-from collections import defaultdict
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -18,6 +17,7 @@ from tqdm.auto import tqdm
 
 from rlpipe import faults
 from rlpipe.algos.base import EPISODE_RETURN, Algorithm, Metrics
+from rlpipe.cadence import Cadence, Window
 from rlpipe.callbacks import Callback
 from rlpipe.checkpoint import checkpoint_path, list_checkpoints, save_checkpoint
 from rlpipe.episodes import EvalResult, EvalStopped, evaluate
@@ -44,43 +44,6 @@ class RunResult:
             f"final eval {self.eval_mean:.2f} ± {self.eval_std:.2f} over {self.eval_episodes} "
             f"episodes | {self.frames:,} frames | {self.wall_time:.1f} s | run dir {self.run_dir}"
         )
-
-
-class _Window:
-    """Averages scalar metrics between two log flushes."""
-
-    def __init__(self) -> None:
-        self.sums: dict[str, float] = defaultdict(float)
-        self.counts: dict[str, int] = defaultdict(int)
-
-    def add(self, key: str, value: float) -> None:
-        self.sums[key] += value
-        self.counts[key] += 1
-
-    def pop(self) -> dict[str, float]:
-        means = {k: self.sums[k] / self.counts[k] for k in self.sums}
-        self.sums.clear()
-        self.counts.clear()
-        return means
-
-
-class Cadence:
-    """Something due every ``every`` frames: at the first multiple of ``every`` past the frames
-    it last fired at (``every`` 0: never)."""
-
-    def __init__(self, every: int, frames: int) -> None:
-        self.every = every
-        self._next = self._after(frames)
-
-    def due(self, frames: int) -> bool:
-        """Whether it is due at ``frames``; if so, the next time is set past ``frames``."""
-        if frames < self._next:
-            return False
-        self._next = self._after(frames)
-        return True
-
-    def _after(self, frames: int) -> float:
-        return (frames // self.every + 1) * self.every if self.every > 0 else math.inf
 
 
 class Interrupted(RlpipeError):
@@ -157,7 +120,7 @@ class Runner:
         self._signal: int | None = None
         self._pending_eval = False  # an evaluation a signal cut short, to run first on resume
         self._last_return = math.nan  # of the latest finished training episode
-        self._window = _Window()  # scalars since the last log flush
+        self._window = Window()  # scalars since the last log flush
         self._window_start, self._window_frames = self._start, 0
 
     def run(self) -> RunResult:

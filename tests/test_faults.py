@@ -429,6 +429,13 @@ TAMPERING: dict[str, tuple[Callable[[Path], None], list[str], str]] = {
         [],
         "config.yaml",
     ),
+    "config-bad-value": (
+        lambda d: (d / "config.yaml").write_text(
+            (d / "config.yaml").read_text().replace("\nseed: 0\n", "\nseed: -1\n")
+        ),
+        [],
+        "config.yaml",
+    ),
     "seed-negative": (lambda d: None, ["seed=-1"], "seed"),
     "seed-too-large": (lambda d: None, ["seed=4294967296"], "seed"),
 }

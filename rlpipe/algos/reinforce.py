@@ -166,7 +166,8 @@ class Reinforce(EnvAlgorithm):
     """REINFORCE (Monte-Carlo policy gradient) on a batched TorchRL env, discrete or continuous.
 
     Each :meth:`train_step` is one epoch: :func:`collect_episodes` runs
-    ``cfg.episodes_per_epoch`` fresh episodes with the sampling policy, every frame gets a weight
+    ``cfg.episodes_per_epoch`` fresh episodes (env seeds drawn from torch's generator, so a
+    resumed run is the uninterrupted one) with the sampling policy, every frame gets a weight
     (``baseline="none"``: its discounted return normalised within its episode, the notebook's;
     ``"value"``: TorchRL's TD(1) advantage, the discounted return minus a learned ``V(s)``, which
     bootstraps on ``V`` where the time limit cut an episode), then ``cfg.updates_per_epoch`` Adam
@@ -219,6 +220,9 @@ class Reinforce(EnvAlgorithm):
         return loss
 
     def train_step(self) -> Metrics:
+        # each epoch's episodes start from env seeds drawn from torch's generator, which
+        # checkpoints hold: a resumed run collects the episodes the uninterrupted one would have
+        self.env.set_seed(int(torch.randint(2**31 - 1, ())))
         batch, frames = collect_episodes(self.policy, self.env, self.cfg.episodes_per_epoch)
         self.frames += frames
         self.iterations += 1
