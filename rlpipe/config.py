@@ -162,6 +162,9 @@ class Config:
 
     def resolved(self) -> Config:
         """This config with every null run key taken from ``algo`` (``total_frames`` may stay
-        null: the algorithm's own budget of epochs or iterations then ends the run)."""
+        null: the algorithm's own budget of epochs or iterations then ends the run), and
+        ``algo``'s run keys set to the result."""
         own = {key: getattr(self.algo, key) for key in RUN_KEYS if getattr(self, key) is None}
-        return replace(self, **own)
+        run = replace(self, **own)
+        # the algorithm sees the run's keys too (e.g. a schedule spanning total_frames)
+        return replace(run, algo=replace(self.algo, **{key: getattr(run, key) for key in RUN_KEYS}))

@@ -60,6 +60,8 @@ BAD_INPUTS = [
     (["seed=abc"], "could not be converted to Integer"),
     (["algo.lr=fast"], "could not be converted to Float"),
     (["env=pendulum"], "DQN needs a discrete action space"),
+    (["+experiment=dqn_cartpole", "env=pendulum"], "DQN needs a discrete action space"),
+    (["+experiment=dqn_lunarlander", "env=bipedal"], "DQN needs a discrete action space"),
     (["env=bipedal"], "DQN needs a discrete action space"),
     (["total_frames=0"], "total_frames must be >= 1"),
     (["total_frames=-100"], "total_frames must be >= 1"),

@@ -83,6 +83,26 @@ def test_experiment_preset_composes():
     assert cfg.total_frames <= 50_000
 
 
+PRESET_ENVS = {
+    "dqn_cartpole": "CartPole-v1",
+    "dqn_mountaincar": "MountainCar-v0",
+    "dqn_lunarlander": "LunarLander-v3",
+    "ars_cartpole": "CartPole-v1",
+    "ars_pendulum": "Pendulum-v1",
+    "ars_bipedal": "BipedalWalker-v3",
+    "reinforce_cartpole": "rlpipe/CartPoleContinuous-v0",
+    "mbrl_pendulum": "Pendulum-v1",
+    "mbrl_cartpole": "rlpipe/CartPoleContinuous-v0",
+}
+
+
+@pytest.mark.parametrize("preset", sorted(p.stem for p in (CONF / "experiment").glob("*.yaml")))
+def test_every_preset_composes_with_its_env_and_algorithm(preset):
+    cfg = compose_config(f"+experiment={preset}")
+    assert cfg.env.id == PRESET_ENVS[preset]
+    assert cfg.algo.name == preset.partition("_")[0]
+
+
 @pytest.mark.parametrize(
     "override",
     ["algo.lrr=1", "total_frame=5", "algo.lr=abc", "seed=1.5", "env.num_envs=x"],

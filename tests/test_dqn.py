@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from rlpipe.algos import DQN, Algorithm, DQNConfig
-from rlpipe.algos.dqn import epsilon
+from rlpipe.algos.dqn import epsilon, learning_rate
 from rlpipe.config import EnvConfig
 from rlpipe.envs import make_env
 from rlpipe.errors import RlpipeError
@@ -77,6 +77,65 @@ def test_epsilon_schedules():
     assert epsilon(10**6, cfg) == pytest.approx(0.05)
     lin = DQNConfig(eps_schedule="linear", eps_start=1.0, eps_end=0.1, eps_decay=100)
     assert [round(epsilon(t, lin), 6) for t in (0, 50, 100, 1000)] == [1.0, 0.55, 0.1, 0.1]
+
+
+def test_learning_rate_schedule():
+    assert learning_rate(10**6, DQNConfig(lr=1e-3)) == 1e-3  # lr_end null: constant
+    cfg = DQNConfig(lr=1e-3, lr_end=1e-4, total_frames=1000)
+    assert [learning_rate(t, cfg) for t in (0, 500, 1000, 5000)] == pytest.approx(
+        [1e-3, 5.5e-4, 1e-4, 1e-4]
+    )
+
+
+def _target_changes(algo: DQN) -> list[bool]:
+    """Per train_step (after learning starts): whether the target net moved."""
+    moved = []
+    for _ in range(6):
+        before = algo.loss.target_value_network_params.clone()
+        algo.train_step()
+        after = algo.loss.target_value_network_params
+        moved.append(any(not torch.equal(before[k], v) for k, v in after.items(True, True)))
+    return moved
+
+
+def test_hard_target_update_copies_every_n_frames():
+    # 8 frames a step: a copy each time the frames pass a multiple of 16 (every second step)
+    cfg = DQNConfig(**SMALL, tau=1.0, target_update_every=16)
+    algo = DQN(partial(make_env, EnvConfig(num_envs=2), seed=0), cfg)
+    algo.train_step()  # 8 frames: the buffer reaches learning_starts here
+    assert _target_changes(algo) == [True, False, True, False, True, False]
+    online, target = algo.loss.value_network_params, algo.loss.target_value_network_params
+    algo.train_step()  # frames 64: a copy
+    for key, value in target.items(True, True):
+        torch.testing.assert_close(value, online[key])
+    algo.close()
+
+
+def test_lr_and_grad_norm_follow_the_config():
+    cfg = DQNConfig(**SMALL, lr=1e-2, lr_end=0.0, total_frames=80, max_grad_norm=1e-6)
+    algo = DQN(partial(make_env, EnvConfig(num_envs=2), seed=0), cfg)
+    for _ in range(5):
+        before = [p.detach().clone() for p in algo.policy.parameters()]
+        algo.train_step()
+    assert algo.optimizer.param_groups[0]["lr"] == pytest.approx(1e-2 * (1 - 40 / 80))
+    # AdamW normalises the step, so a tiny clipped norm still moves: it must stay finite
+    assert all(torch.isfinite(p).all() for p in algo.policy.parameters())
+    assert any(not torch.equal(b, p) for b, p in zip(before, algo.policy.parameters()))
+    algo.close()
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        ({"lr_end": 1.0}, "lr_end"),
+        ({"lr_end": -1.0}, "lr_end"),
+        ({"max_grad_norm": 0.0}, "max_grad_norm"),
+        ({"target_update_every": -1}, "target_update_every"),
+    ],
+)
+def test_bad_schedule_values(kwargs, message):
+    with pytest.raises(RlpipeError, match=message):
+        DQNConfig(**kwargs)
 
 
 def test_train_step_collects_updates_and_reports(dqn):

@@ -1,5 +1,5 @@
 """DQN assembled from TorchRL parts: QValueActor, EGreedyModule, Collector, ReplayBuffer,
-DQNLoss (Huber) and SoftUpdate."""
+DQNLoss (Huber) and SoftUpdate (HardUpdate for tau=1)."""
 
 from __future__ import annotations
 
@@ -11,9 +11,10 @@ from tensordict.nn import TensorDictSequential
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.envs import EnvBase
 from torchrl.modules import EGreedyModule, QValueActor
-from torchrl.objectives import DQNLoss, SoftUpdate
+from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate
 
 from rlpipe.algos.base import LOSS, EnvAlgorithm, Metrics, episode_metrics, make_collector
+from rlpipe.cadence import Cadence
 from rlpipe.config import AlgoConfig, checked
 from rlpipe.envs import is_discrete, observation_size
 from rlpipe.errors import RlpipeError, check
@@ -31,6 +32,8 @@ class DQNConfig(AlgoConfig):
     total_frames: int | None = 60_000  # DQN has no budget of its own: the run's length
     hidden_sizes: list[int] = checked([128, 128], "sizes")
     lr: float = checked(1e-4, "positive")
+    # null: a constant lr; a number: lr annealed linearly to it over algo.total_frames
+    lr_end: float | None = None
     weight_decay: float = checked(1e-2, "non_negative")  # AdamW's default
     amsgrad: bool = True
     batch_size: int = checked(128, "at_least_one")
@@ -38,7 +41,11 @@ class DQNConfig(AlgoConfig):
     gamma: float = checked(0.99, "discount")
     # soft target update: target <- tau * online + (1 - tau) * target
     tau: float = checked(0.005, "discount")
-    grad_clip_value: float = checked(100.0, "positive")
+    # frames between target updates (0: after every gradient step); with tau=1, a hard copy
+    # every N frames (SB3's target_update_interval)
+    target_update_every: int = checked(0, "non_negative")
+    grad_clip_value: float = checked(100.0, "positive")  # each gradient element (the notebook's)
+    max_grad_norm: float | None = None  # also clip the gradient's norm (SB3: 10); null: off
     loss: str = checked("smooth_l1", choices=LOSSES)  # Huber
     double_dqn: bool = False
     eps_start: float = 0.9
@@ -57,6 +64,14 @@ class DQNConfig(AlgoConfig):
         check(
             self.buffer_size >= self.batch_size,
             f"algo.buffer_size ({self.buffer_size}) must be >= algo.batch_size ({self.batch_size})",
+        )
+        check(
+            self.lr_end is None or 0 <= self.lr_end <= self.lr,
+            f"algo.lr_end must be null or in [0, algo.lr], got {self.lr_end}",
+        )
+        check(
+            self.max_grad_norm is None or self.max_grad_norm > 0,
+            f"algo.max_grad_norm must be null or > 0, got {self.max_grad_norm}",
         )
         check(
             0 <= self.eps_end <= self.eps_start <= 1,
@@ -82,12 +97,23 @@ def epsilon(frames: int, cfg: DQNConfig) -> float:
     return cfg.eps_start + fraction * (cfg.eps_end - cfg.eps_start)
 
 
+def learning_rate(frames: int, cfg: DQNConfig) -> float:
+    """The learning rate after ``frames`` env frames (linear to ``lr_end`` over
+    ``total_frames``, or constant)."""
+    if cfg.lr_end is None or not cfg.total_frames:
+        return cfg.lr
+    fraction = min(frames / cfg.total_frames, 1.0)
+    return cfg.lr + fraction * (cfg.lr_end - cfg.lr)
+
+
 class DQN(EnvAlgorithm):
     """Deep Q-learning on a batched TorchRL env with a discrete action space.
 
     Each :meth:`train_step` collects ``cfg.frames_per_batch`` frames with the ε-greedy policy,
     stores them in the replay buffer and runs ``cfg.updates_per_batch`` gradient steps, each
-    followed by a soft target update.
+    followed by a soft target update (or, with ``cfg.target_update_every``, one update each time
+    the frames pass a multiple of it). ε and, with ``cfg.lr_end``, the learning rate follow the
+    frames.
     """
 
     cfg: DQNConfig
@@ -116,7 +142,12 @@ class DQN(EnvAlgorithm):
             action_space=spec,
         )
         self.loss.make_value_estimator(gamma=cfg.gamma)
-        self.target_updater = SoftUpdate(self.loss, tau=cfg.tau)
+        self.target_updater = (  # tau 1: copy (TorchRL's SoftUpdate wants tau <= 0.5)
+            HardUpdate(self.loss, value_network_update_interval=0)  # 0: copy at every step()
+            if cfg.tau == 1.0
+            else SoftUpdate(self.loss, tau=cfg.tau)
+        )
+        self._target_cadence = Cadence(cfg.target_update_every, 0)
         self.optimizer = torch.optim.AdamW(
             self.loss.parameters(),
             lr=cfg.lr,
@@ -139,7 +170,7 @@ class DQN(EnvAlgorithm):
         batch = next(self._batches)
         self.frames += batch.numel()
         self.iterations += 1
-        self.exploration.eps.fill_(epsilon(self.frames, self.cfg))
+        self._follow_schedules()
         self.buffer.extend(batch.reshape(-1).select(*_STORED_KEYS))
         metrics: Metrics = {"train/epsilon": float(self.exploration.eps)}
         metrics.update(episode_metrics(batch))
@@ -151,17 +182,28 @@ class DQN(EnvAlgorithm):
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
             torch.nn.utils.clip_grad_value_(self.loss.parameters(), self.cfg.grad_clip_value)
+            if self.cfg.max_grad_norm is not None:
+                torch.nn.utils.clip_grad_norm_(self.loss.parameters(), self.cfg.max_grad_norm)
             self.optimizer.step()
-            self.target_updater.step()
+            if not self.cfg.target_update_every:
+                self.target_updater.step()
             losses.append(loss.detach())
+        if losses and self._target_cadence.due(self.frames):
+            self.target_updater.step()
         if losses:
             metrics[LOSS] = float(torch.stack(losses).mean())
         if self._copy_weights:
             self.collector.update_policy_weights_()
         return metrics
 
-    def _restored(self) -> None:
+    def _follow_schedules(self) -> None:
         self.exploration.eps.fill_(epsilon(self.frames, self.cfg))
+        for group in self.optimizer.param_groups:
+            group["lr"] = learning_rate(self.frames, self.cfg)
+
+    def _restored(self) -> None:
+        self._follow_schedules()
+        self._target_cadence = Cadence(self.cfg.target_update_every, self.frames)
         self.collector.update_policy_weights_()
 
     def close(self) -> None:

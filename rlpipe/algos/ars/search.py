@@ -42,8 +42,10 @@ class ARSSearch:
     The backend (env copies, worker processes or actors) starts with the first :meth:`step`, or
     :meth:`start`: a search built only to hold its policy, or to load a state, starts nothing.
 
-    Each member's episode seed comes from the search's generator, so for the same ``seed`` every
-    backend and worker count gives the same rollouts and the same θ, for envs whose
+    Each direction's episode seed comes from the search's generator, shared by θ+νδ and θ-νδ
+    (both start from the same state, so r+ - r- measures the direction, not two starts' luck),
+    so for the same ``seed`` every backend and worker count gives the same rollouts and the
+    same θ, for envs whose
     ``reset(seed=...)`` fixes the episode (Box2D envs keep their world across resets, so there
     an episode also depends on what its env copy ran before).
     """
@@ -116,9 +118,11 @@ class ARSSearch:
         theta = self.theta
         deltas = torch.randn(self.num_directions, theta.numel(), generator=self.generator)
         flat = torch.cat([theta + self.noise * deltas, theta - self.noise * deltas])
-        # each member's episode seed comes from the search's generator: the same results
-        # whichever worker runs it
-        seeds = torch.randint(2**31 - 1, (len(flat),), generator=self.generator)
+        # each direction's episode seed comes from the search's generator (the same results
+        # whichever worker runs it); θ+νδ and θ-νδ start from the same state, so r+ - r- measures
+        # the direction, not the luck of two starts
+        seeds = torch.randint(2**31 - 1, (self.num_directions,), generator=self.generator)
+        seeds = seeds.repeat(2)
         shares = self._backend.roll_out(flat, seeds)
         returns, raw, lengths = (torch.empty(len(flat), dtype=torch.float64) for _ in range(3))
         for members, result in shares:
