@@ -21,6 +21,7 @@ import torch
 from conftest import TINY
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
+from test_config import compose_config
 from torch import nn
 from torch.nn.utils import parameters_to_vector, vector_to_parameters
 
@@ -31,6 +32,7 @@ from rlpipe.config import EnvConfig
 from rlpipe.envs import make_env
 from rlpipe.episodes import evaluate
 from rlpipe.errors import RlpipeError
+from rlpipe.models import ClampAction
 from rlpipe.normalizer import Normalizer
 
 CARTPOLE = EnvConfig(id="CartPole-v1")
@@ -196,6 +198,35 @@ def test_rollout_ends_episodes_at_the_env_time_limit_inside_its_wrappers():
     assert torch.equal(same.lengths, result.lengths)
     assert torch.equal(same.raw_returns, result.raw_returns)
     assert torch.equal(same.obs_mean, result.obs_mean)
+
+
+def test_training_rewards_are_the_envs_own_unless_clipped():
+    """reward_clip=false ranks the env's returns; clipped at 1, Pendulum's rewards (down to -16.3
+    a step) are -1 wherever the pole is more than a radian from the top, which flattens away
+    the differences the swing-up needs: the Pendulum preset turns it off."""
+    policy, _ = make_ars_policy(make_env(PENDULUM), ARSConfig(policy="mlp", hidden_sizes=[8]))
+    flat = torch.randn(4, parameters_to_vector(policy.parameters()).numel())
+    envs = [gym.make(PENDULUM.id) for _ in range(4)]
+    own = rollout(policy, envs, flat, [0, 1, 2, 3], max_steps=1000)
+    assert torch.equal(own.returns, own.raw_returns)
+    clipped = rollout(policy, envs, flat, [0, 1, 2, 3], max_steps=1000, reward_clip=1.0)
+    assert torch.equal(clipped.raw_returns, own.raw_returns)
+    assert (clipped.returns >= -200).all() and (own.raw_returns < -200).all()
+
+
+def test_pendulum_preset_is_a_biased_mlp_run_for_its_whole_frame_budget():
+    cfg = compose_config("+experiment=ars_pendulum")
+    assert isinstance(cfg.algo, ARSConfig) and cfg.env.id == PENDULUM.id
+    assert cfg.algo.policy == "mlp" and not cfg.algo.reward_clip
+    assert cfg.algo.workers == 0  # all cores by default
+    policy, normalizer = make_ars_policy(make_env(cfg.env), cfg.algo)
+    linears = [layer for layer in policy[1].module if isinstance(layer, nn.Linear)]
+    assert [layer.out_features for layer in linears] == [*cfg.algo.hidden_sizes, 1]
+    assert all(layer.bias is not None for layer in linears)
+    assert isinstance(policy[2].module, ClampAction)  # raw outputs clipped to [-2, 2]
+    assert cfg.algo.normalize_observations and policy[0].module is normalizer
+    # algo.iterations must not end the run before total_frames (Pendulum: 200-step episodes)
+    assert cfg.algo.iterations * 2 * cfg.algo.num_directions * 200 >= cfg.total_frames
 
 
 def test_rollout_result_travels_as_numpy_arrays():
