@@ -12,7 +12,9 @@ of the last three evals and the final frames; ``evaluation/trained-*.json`` the 
 eval. With ``--sb3``, presets that have RL Zoo hyper-parameters also train Stable-Baselines3's
 DQN (a spawned process, one torch thread) on the same seed with the preset's eval cadence and
 episodes (greedy, vectorised eval envs, eval time off the clock), then the same final eval.
-``--jobs`` runs go at once; rlpipe seed s and SB3 seed s start side by side.
+``--jobs`` runs go at once; rlpipe seed s and SB3 seed s start side by side. Runs that an earlier
+call finished in ``--out`` are read instead of run again, so an interrupted benchmark continues
+and a table can be made again from its runs.
 
     pip install -e ".[dev,bench]"
     python benchmarks/presets.py --sb3 --append BENCHMARKS.md             # everything (long)
@@ -172,6 +174,11 @@ class Run:
         return next(((f, s) for f, m, s in self.evals if m >= target - 1e-6), None)
 
     @property
+    def train_seconds(self) -> float | None:
+        """Training seconds of the whole run (evaluations excluded): at its last eval."""
+        return self.evals[-1][2] if self.evals else None
+
+    @property
     def last_three(self) -> float | None:
         return float(np.mean([m for _, m, _ in self.evals[-3:]])) if self.evals else None
 
@@ -266,10 +273,14 @@ def sb3_job(preset: Preset, cfg: Config, seed: int, out: Path) -> Run:
         preset.final_episodes,
         preset.sb3,
     )
-    with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
-        result = pool.submit(run_sb3, job).result()
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "sb3.json").write_text(json.dumps(result, indent=2) + "\n")
+    saved = out / "sb3.json"
+    if saved.is_file():  # a finished run of an earlier call with this --out
+        result = json.loads(saved.read_text())
+    else:
+        with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
+            result = pool.submit(run_sb3, job).result()
+        out.mkdir(parents=True, exist_ok=True)
+        saved.write_text(json.dumps(result, indent=2) + "\n")
     evals = [(int(f), float(m), float(s)) for f, m, s in result["evals"]]
     return Run(preset.experiment, seed, "SB3", evals, result["final"])
 
@@ -298,12 +309,18 @@ def rlpipe_job(preset: Preset, seed: int, frames: int | None, episodes: int, out
         "checkpoint_every=0",
         f"hydra.run.dir={run_dir}",
     ] + ([f"total_frames={frames}"] if frames is not None else [])
-    _call(["-m", "rlpipe", *overrides], log, out)
-    _call(["-m", "rlpipe.evaluate", f"run_dir={run_dir}", f"episodes={episodes}"], log, out)
+    finals = sorted(
+        (run_dir / "evaluation").glob("trained-*.json"), key=lambda p: p.stat().st_mtime
+    )
+    if not (run_dir / "summary.json").is_file() or not finals:  # else: an earlier call's run
+        _call(["-m", "rlpipe", *overrides], log, out)
+        _call(["-m", "rlpipe.evaluate", f"run_dir={run_dir}", f"episodes={episodes}"], log, out)
+        finals = sorted(
+            (run_dir / "evaluation").glob("trained-*.json"), key=lambda p: p.stat().st_mtime
+        )
     seconds = dict(read_scalar(run_dir, "time/train_seconds"))
     evals = [(f, m, seconds[f]) for f, m in read_scalar(run_dir, "eval/return_mean")]
-    summary = max((run_dir / "evaluation").glob("trained-*.json"), key=lambda p: p.stat().st_mtime)
-    final = json.loads(summary.read_text())["return_mean"]
+    final = json.loads(finals[-1].read_text())["return_mean"]
     return Run(preset.experiment, seed, "rlpipe", evals, final)
 
 
@@ -399,8 +416,17 @@ def summary_row(preset: Preset, cfg: Config, ours: list[Run], sb3: list[Run]) ->
     if finals:
         final_cell += f" ({sum(x >= preset.final_bar for x in finals)}/{n} ≥ {preset.final_bar:g})"
     zoo = "–" if preset.zoo is None else f"{preset.zoo:g} at {preset.budget_text}"
-    sb3_cell, ratio = "–", "–"
+    sb3_cell, ratio, whole = "–", "–", "–"
     if sb3:
+        sb3_whole = {r.seed: r.train_seconds for r in sb3 if r.train_seconds}
+        whole = _median(
+            [
+                r.train_seconds / sb3_whole[r.seed]
+                for r in ours
+                if r.train_seconds and r.seed in sb3_whole
+            ],
+            ".2f",
+        )
         sb3_hits = {r.seed: r.hit(preset.target) for r in sb3}
         reached = [h[1] for h in sb3_hits.values() if h is not None]
         sb3_cell = f"{_median(reached, '.1f')} ({len(reached)}/{len(sb3)} reached)"
@@ -420,9 +446,11 @@ def summary_row(preset: Preset, cfg: Config, ours: list[Run], sb3: list[Run]) ->
         f"{np.mean(lasts):.1f} ± {np.std(lasts):.1f}" if lasts else "–",
         final_cell,
         _median([h[1] for h in hits if h is not None], ".1f"),
+        _median([r.train_seconds for r in ours if r.train_seconds], ".1f"),
         zoo,
         sb3_cell,
         ratio,
+        whole,
     ]
 
 
@@ -534,9 +562,11 @@ def report(
                     "last-three mean",
                     "final greedy mean per seed",
                     "train s to target (median)",
+                    "train s, whole run (median)",
                     "RL Zoo",
                     "SB3 train s to target (median)",
-                    "rlpipe/SB3",
+                    "rlpipe/SB3 to target",
+                    "rlpipe/SB3 whole run",
                 ],
                 rows,
             ),
@@ -545,8 +575,9 @@ def report(
             "there). Frames and training seconds (eval time excluded) at the first eval ≥ the "
             "target: median (range) over the seeds that reached it. Last-three mean: mean ± std "
             "over seeds. Final: the final greedy eval per seed, counted against the Zoo figure "
-            "(or the solved bar). rlpipe/SB3: median over the seeds both reached of the ratio of "
-            "training seconds to the target.",
+            "(or the solved bar). rlpipe/SB3 to target: median over the seeds both reached of the "
+            "ratio of training seconds to the target; whole run: median over seeds of the ratio "
+            "of training seconds over the whole budget.",
             "",
             *notes,
             "",
@@ -575,7 +606,12 @@ def main() -> None:
     p.add_argument("--jobs", type=int, default=2, help="runs at once (default 2)")
     p.add_argument("--frames", type=int, help="override every preset's budget (smoke tests)")
     p.add_argument("--final-episodes", type=int, help="override the final eval's episodes")
-    p.add_argument("--out", type=Path, help="where the run dirs go (default: a temp dir)")
+    p.add_argument(
+        "--out",
+        type=Path,
+        help="where the run dirs go (default: a temp dir); runs finished there by an earlier "
+        "call are read, not run again (an interrupted benchmark continues)",
+    )
     args = p.parse_args()
     if args.jobs < 1:
         p.error("--jobs must be at least 1")
