@@ -151,7 +151,12 @@ PRESETS: dict[str, Preset] = {
         budget_text="2M steps",
     ),
     "ars_cartpole": Preset(
-        "ars_cartpole", "CartPole-v1", target=500.0, final_episodes=20, budget_text="≤ 50k steps"
+        "ars_cartpole",
+        "CartPole-v1",
+        target=500.0,
+        solved=475.0,
+        final_episodes=20,
+        budget_text="≤ 50k steps",
     ),
     "ars_bipedal": Preset("ars_bipedal", "BipedalWalker-v3", target=300.0, final_episodes=100),
 }
@@ -168,6 +173,7 @@ class Run:
     final: float | None = None  # the final greedy eval's mean
     seconds: float = 0.0  # wall seconds of the whole job (training, evals, start-up)
     error: str | None = None
+    reused: bool = False  # read from an earlier call's --out, not run by this one
 
     def hit(self, target: float) -> tuple[int, float] | None:
         """(frames, training seconds) of the first eval reaching ``target``."""
@@ -274,7 +280,8 @@ def sb3_job(preset: Preset, cfg: Config, seed: int, out: Path) -> Run:
         preset.sb3,
     )
     saved = out / "sb3.json"
-    if saved.is_file():  # a finished run of an earlier call with this --out
+    reused = saved.is_file()  # a finished run of an earlier call with this --out
+    if reused:
         result = json.loads(saved.read_text())
     else:
         with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
@@ -282,7 +289,7 @@ def sb3_job(preset: Preset, cfg: Config, seed: int, out: Path) -> Run:
         out.mkdir(parents=True, exist_ok=True)
         saved.write_text(json.dumps(result, indent=2) + "\n")
     evals = [(int(f), float(m), float(s)) for f, m, s in result["evals"]]
-    return Run(preset.experiment, seed, "SB3", evals, result["final"])
+    return Run(preset.experiment, seed, "SB3", evals, result["final"], reused=reused)
 
 
 def _call(args: list[str], log: Path, cwd: Path) -> None:
@@ -312,7 +319,8 @@ def rlpipe_job(preset: Preset, seed: int, frames: int | None, episodes: int, out
     finals = sorted(
         (run_dir / "evaluation").glob("trained-*.json"), key=lambda p: p.stat().st_mtime
     )
-    if not (run_dir / "summary.json").is_file() or not finals:  # else: an earlier call's run
+    reused = (run_dir / "summary.json").is_file() and bool(finals)  # an earlier call's run
+    if not reused:
         _call(["-m", "rlpipe", *overrides], log, out)
         _call(["-m", "rlpipe.evaluate", f"run_dir={run_dir}", f"episodes={episodes}"], log, out)
         finals = sorted(
@@ -321,7 +329,7 @@ def rlpipe_job(preset: Preset, seed: int, frames: int | None, episodes: int, out
     seconds = dict(read_scalar(run_dir, "time/train_seconds"))
     evals = [(f, m, seconds[f]) for f, m in read_scalar(run_dir, "eval/return_mean")]
     final = json.loads(finals[-1].read_text())["return_mean"]
-    return Run(preset.experiment, seed, "rlpipe", evals, final)
+    return Run(preset.experiment, seed, "rlpipe", evals, final, reused=reused)
 
 
 class Scheduler:
@@ -541,6 +549,7 @@ def report(
             + (f"; SB3 DQN with the RL Zoo's settings: {_kwargs(p.sb3)}" if sb3 else "")
         )
     start, end = (", ".join(f"{x:.2f}" for x in load) for load in loads)
+    reused = sum(r.reused for r in runs)
     command = " ".join(["python", "benchmarks/presets.py", *sys.argv[1:]])
     return "\n".join(
         [
@@ -549,7 +558,13 @@ def report(
             machine(PACKAGES),
             "",
             f"Load average (1, 5, 15 min): {start} at the start, {end} at the end; "
-            f"{args.jobs} run(s) at once; {wall / 60:.1f} min in all. `{command}`",
+            f"{args.jobs} run(s) at once; {wall / 60:.1f} min in all. `{command}`"
+            + (
+                f" ({reused} of {len(runs)} runs read from earlier calls' `--out`: their load "
+                "and time are in those calls' reports)"
+                if reused
+                else ""
+            ),
             "",
             table(
                 [
