@@ -54,6 +54,7 @@ BAD_INPUTS = [
     ),
     (["env=gym", "env.id=NoSuchEnv-v0"], "cannot make gymnasium env 'NoSuchEnv-v0'"),
     (["env=gym"], "env.id must be set"),
+    (["env=gym", "env.id=no_such_module:Foo-v0"], "names module 'no_such_module'"),
     (["algo.lrr=1"], "Key 'lrr' not in 'DQNConfig'"),
     (["total_frame=5"], "Key 'total_frame' not in 'Config'"),
     (["+foo=1"], "unknown config key 'foo'"),

@@ -85,6 +85,12 @@ def make_env(
         ) from err
     except TypeError as err:
         raise RlpipeError(f"bad env.kwargs for {cfg.id!r}: {err}") from err
+    except ModuleNotFoundError as err:  # env.id=module:Id, module not importable
+        raise RlpipeError(
+            f"env.id={cfg.id!r} names module {err.name or cfg.id.partition(':')[0]!r}, which "
+            "cannot be imported; put the folder that holds it on PYTHONPATH "
+            "(e.g. PYTHONPATH=. python -m rlpipe ...)"
+        ) from err
     _check_spaces(cfg.id, venv)
     base = GymWrapper(venv, categorical_action_encoding=True, device=device)
     env = TransformedEnv(base, Compose(DoubleToFloat(), StepCounter(), InitTracker(), RewardSum()))
