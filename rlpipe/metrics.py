@@ -115,7 +115,7 @@ def _truncate_file(path: Path, frames: int) -> None:
 
 @dataclass
 class Group:
-    """Runs that differ only by seed, and the overrides that set them apart from other groups."""
+    """Runs that differ only by seed (or a resume), and the overrides that set them apart."""
 
     label: str
     runs: list[Path]
@@ -157,11 +157,17 @@ def _key(override: str) -> str:
     return override.split("=")[0].lstrip("+~")
 
 
+# overrides that never tell experiments apart: seeds are what a group averages over, and a resumed
+# run is the run it continues
+NOT_GROUPED = ("seed", "resume")
+
+
 def group_runs(runs: Sequence[Path]) -> list[Group]:
-    """Group runs whose overrides agree but for ``seed``; label groups by what differs."""
+    """Group runs whose overrides agree but for ``seed`` and ``resume``; label groups by what
+    differs."""
     keyed: dict[frozenset[str], list[Path]] = {}
     for run in runs:
-        overrides = frozenset(o for o in run_overrides(run) if _key(o) != "seed")
+        overrides = frozenset(o for o in run_overrides(run) if _key(o) not in NOT_GROUPED)
         keyed.setdefault(overrides, []).append(run)
     common = frozenset.intersection(*keyed) if keyed else frozenset()
     groups = []

@@ -178,3 +178,23 @@ def test_check_writable_writes_nothing(tmp_path: Path) -> None:
     with pytest.raises(RlpipeError, match="cannot write .*: it is a directory; hint"):
         check_writable(tmp_path, "hint")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
+
+
+def test_seeds_and_resumes_group_together_other_overrides_apart(tmp_path):
+    from rlpipe.metrics import group_runs
+
+    made = {
+        "a0": ["seed=0", "algo.lr=0.1"],
+        "a1": ["seed=1", "algo.lr=0.1", f"resume={tmp_path / 'a1'}"],  # a resumed seed
+        "b0": ["seed=0", "algo.lr=0.2"],
+    }
+    for name, overrides in made.items():
+        (tmp_path / name / ".hydra").mkdir(parents=True)
+        (tmp_path / name / ".hydra" / "overrides.yaml").write_text(
+            "".join(f"- {o}\n" for o in overrides)
+        )
+    groups = group_runs([tmp_path / name for name in made])
+    assert sorted((g.label, len(g.runs)) for g in groups) == [
+        ("algo.lr=0.1", 2),
+        ("algo.lr=0.2", 1),
+    ]
