@@ -13,7 +13,6 @@ import ctypes
 import multiprocessing as mp
 import os
 import signal
-import socket
 import sys
 import time
 import weakref
@@ -27,14 +26,13 @@ from tensordict.nn import TensorDictModuleBase
 
 from rlpipe.algos.ars.rollout import RolloutResult, Rollouts
 from rlpipe.envs import EnvFactory
-from rlpipe.errors import RlpipeError, check
+from rlpipe.errors import RlpipeError
 
 __all__ = ["BACKENDS", "RAY_INSTALL", "Backend", "Shares", "WorkerDied", "start_backend"]
 
 BACKENDS = ("local", "ray")
 CHUNKS_PER_WORKER = 8
 RAY_INSTALL = 'pip install "rlpipe[ray]"'
-RAY_PORT = 6379  # the port of a Ray head's GCS when an address names none
 
 # what a backend's roll_out returns: (member indices, their result) pairs covering the population
 Shares = list[tuple[torch.Tensor, RolloutResult]]
@@ -68,7 +66,9 @@ def start_backend(
     """
     units = _Units(policy, env_factory, seed, options)
     if backend == "ray":
-        return _RayActors(units, population, workers, address=ray_address, num_cpus=ray_num_cpus)
+        from rlpipe.algos.ars.ray_actors import RayActors  # Ray is an extra: imported on use
+
+        return RayActors(units, population, workers, address=ray_address, num_cpus=ray_num_cpus)
     workers = min(workers or os.cpu_count() or 1, population)
     if workers == 1:
         return _InProcess(Rollouts(*units.args(0, population)), population)
@@ -339,101 +339,3 @@ def _start_method() -> str:
     if "fork" in mp.get_all_start_methods() and not torch.cuda.is_initialized():
         return "fork"
     return "spawn"
-
-
-class _RayActors(_Pool):
-    """Ray actors of one CPU each, on this machine or anywhere in a Ray cluster.
-
-    Each actor is a :class:`Rollouts` holding its own env copies; ``workers`` 0 starts one per
-    CPU of the cluster.
-    """
-
-    def __init__(
-        self,
-        units: _Units,
-        population: int,
-        workers: int,
-        *,
-        address: str | None,
-        num_cpus: int | None,
-    ) -> None:
-        self._owns_ray = _connect_ray(address, num_cpus)
-        import ray
-
-        self._ray = ray
-        cpus = int(ray.cluster_resources().get("CPU", 0))
-        workers = min(workers or cpus, population)
-        super().__init__(units, population, max(workers, 1))
-        try:
-            check(
-                1 <= workers <= cpus,
-                f"{workers} Ray workers need as many CPUs, but the Ray cluster has {cpus}",
-            )
-            actor = ray.remote(num_cpus=1)(Rollouts)
-            self.workers = [actor.remote(*units.args(w, self.chunk_size)) for w in range(workers)]
-            # every actor has built its envs (ray.get raises the error of one that could not)
-            ray.get([worker.__ray_ready__.remote() for worker in self.workers])
-        except BaseException:
-            self.close()
-            raise
-
-    def _submit(self, worker: Any, *message: Any) -> Any:
-        return worker.run.remote(*message)
-
-    def _wait(self, handles: list[Any]) -> list[Any]:
-        return self._ray.wait(handles, num_returns=1)[0]
-
-    def _collect(self, handle: Any) -> RolloutResult:
-        return self._ray.get(handle)
-
-    def close(self) -> None:
-        for worker in self.workers:
-            self._ray.kill(worker)
-        self.workers = []
-        if self._owns_ray and self._ray.is_initialized():
-            self._ray.shutdown()
-
-
-def _connect_ray(address: str | None, num_cpus: int | None) -> bool:
-    """Start Ray here (``address`` None, ``num_cpus`` CPUs) or join the cluster at ``address``.
-
-    Returns whether this call initialised Ray (and so should shut it down); a Ray the caller
-    already initialised is used as it is.
-    """
-    try:
-        import ray
-    except ImportError as err:
-        raise RlpipeError(f"the Ray backend needs Ray; install it with: {RAY_INSTALL}") from err
-    if ray.is_initialized():
-        return False
-    if address not in (None, "auto"):
-        _check_reachable(address)
-    try:
-        ray.init(
-            address=address,
-            num_cpus=num_cpus if address is None else None,
-            include_dashboard=False,
-            log_to_driver=False,
-        )
-    except ConnectionError as err:
-        message = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        raise RlpipeError(f"cannot connect to Ray at {address}: {message}") from err
-    return True
-
-
-def _check_reachable(address: str) -> None:
-    """Fail in one line, within seconds, when nothing listens at a ``host:port`` Ray address.
-
-    ``ray.init`` would retry an unreachable address for minutes.
-    """
-    host, _, port = address.removeprefix("ray://").rpartition(":")
-    if not host:
-        host, port = port, str(RAY_PORT)
-    check(port.isdigit(), f"Ray address {address!r} must be host:port, ray://host:port or auto")
-    try:
-        socket.create_connection((host, int(port)), timeout=5).close()
-    except OSError as err:
-        raise RlpipeError(
-            f"cannot reach a Ray cluster at {address} ({err.strerror or err}); start one with "
-            "`ray start --head` there, or fix the address"
-        ) from err
