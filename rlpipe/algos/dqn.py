@@ -188,9 +188,9 @@ class DQN(EnvAlgorithm):
             if not self.cfg.target_update_every:
                 self.target_updater.step()
             losses.append(loss.detach())
-        if losses and self._target_cadence.due(self.frames):
-            self.target_updater.step()
         if losses:
+            if self._target_cadence.due(self.frames):
+                self.target_updater.step()
             metrics[LOSS] = float(torch.stack(losses).mean())
         if self._copy_weights:
             self.collector.update_policy_weights_()
