@@ -15,7 +15,7 @@ import os
 import time
 from pathlib import Path
 
-from common import compose_config, machine, parser, publish, read_scalar, table
+from common import compose_run, machine, parser, publish, read_scalar, table
 
 from rlpipe.pipeline import train
 
@@ -24,7 +24,7 @@ TARGET = 300.0
 
 def learning_curve(overrides: list[str], run_dir: Path) -> tuple[list[list[object]], object]:
     """Train ``python -m rlpipe <overrides>`` into ``run_dir``; one row per evaluation."""
-    cfg = compose_config(*overrides)
+    cfg = compose_run(*overrides)
     result = train(cfg, run_dir)
     means = read_scalar(run_dir, "eval/return_mean")
     stds = read_scalar(run_dir, "eval/return_std")

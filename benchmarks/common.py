@@ -13,11 +13,8 @@ from functools import partial
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
-from hydra import compose, initialize_config_module
-
 from rlpipe.algos import make_algorithm
-from rlpipe.cli import register_configs, to_config
-from rlpipe.config import Config
+from rlpipe.cli import compose_run
 from rlpipe.envs import make_env
 from rlpipe.episodes import evaluate
 from rlpipe.runtime import seed_everything
@@ -62,13 +59,6 @@ def table(headers: Sequence[str], rows: Sequence[Sequence[object]]) -> str:
     return "\n".join(lines)
 
 
-def compose_config(*overrides: str) -> Config:
-    """The same config ``python -m rlpipe <overrides>`` would run."""
-    register_configs()
-    with initialize_config_module(config_module="rlpipe.conf", version_base="1.3"):
-        return to_config(compose("config", overrides=list(overrides)))
-
-
 def train_with_evals(
     overrides: list[str],
     seed: int,
@@ -82,7 +72,7 @@ def train_with_evals(
     """Train step by step with a greedy eval after each (or, with ``eval_every``, after the first
     step at or past each multiple of that many frames); one row per eval (stops at ``target``,
     or after the eval at ``max_frames``). Training seconds exclude evaluation."""
-    cfg = compose_config(*overrides, f"seed={seed}")
+    cfg = compose_run(*overrides, f"seed={seed}")
     seed_everything(seed)
     eval_env = make_env(cfg.env, num_envs=min(episodes, 32), seed=seed + 10_000)
     algo = make_algorithm(partial(make_env, cfg.env, seed=seed), cfg.algo)
@@ -144,7 +134,7 @@ def publish(report: str, append: Path | None) -> None:
 def time_ars(seed: int, iterations: int, *overrides: str) -> dict:
     """``iterations`` ARS iterations on BipedalWalker-v3 (``algo=ars env=bipedal`` plus
     ``overrides``): env steps, wall seconds, rollout CPU seconds, start-up seconds, final θ."""
-    cfg = compose_config("algo=ars", "env=bipedal", f"seed={seed}", *overrides)
+    cfg = compose_run("algo=ars", "env=bipedal", f"seed={seed}", *overrides)
     seed_everything(seed)
     start = time.perf_counter()
     algo = make_algorithm(partial(make_env, cfg.env, seed=seed), cfg.algo)

@@ -44,7 +44,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from common import compose_config, machine, parser, publish, read_scalar, table
+from common import compose_run, machine, parser, publish, read_scalar, table
 
 from rlpipe.cadence import Cadence
 from rlpipe.config import Config
@@ -520,7 +520,7 @@ def compose(preset: Preset, frames: int | None) -> Config:
     if frames is not None:
         overrides.append(f"total_frames={frames}")
     try:
-        return compose_config(*overrides).resolved()
+        return compose_run(*overrides).resolved()
     except Exception as e:
         sys.exit(f"presets.py: +experiment={preset.experiment} does not compose: {e}")
 

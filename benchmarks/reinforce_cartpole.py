@@ -31,7 +31,7 @@ import argparse
 import numpy as np
 import torch
 from common import (
-    compose_config,
+    compose_run,
     first_hit,
     hit_cells,
     machine,
@@ -146,8 +146,8 @@ def main() -> None:
         ars_rows = rows_to_target(
             ["algo=ars", "env=cartpole_continuous"], args, args.ars_iterations, HORIZON
         )
-    cfg = compose_config(*CONTINUOUS["notebook defaults"])
-    preset = compose_config(*CONTINUOUS["preset"]).algo
+    cfg = compose_run(*CONTINUOUS["notebook defaults"])
+    preset = compose_run(*CONTINUOUS["preset"]).algo
     report = [
         "### REINFORCE on the notebook's continuous CartPole: rlpipe vs the notebook's loop",
         "",

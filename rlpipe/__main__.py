@@ -16,6 +16,7 @@ from omegaconf import DictConfig
 from rlpipe.cli import (
     USER_ERRORS,
     fail,
+    open_entries,
     register_configs,
     run_cli,
     to_config,
@@ -70,7 +71,7 @@ def main() -> None:
     """Console entry point (also ``rlpipe`` on the PATH)."""
     logging.getLogger("torchrl").setLevel(logging.WARNING)  # keep the console to progress + summary
     try:
-        sys.argv[1:] = resume_in_place(sys.argv[1:])
+        sys.argv[1:] = open_entries(resume_in_place(sys.argv[1:]))
         if {"-c", "--cfg"} & set(sys.argv[1:]):
             validate_overrides(sys.argv[1:])  # Hydra prints the config without calling the job
     except USER_ERRORS as err:

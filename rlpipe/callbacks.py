@@ -21,8 +21,10 @@ VIDEO_DIR = "videos"
 
 
 class Callback:
-    """Hooks into a :class:`~rlpipe.runner.Runner`: override the ones you need (all do nothing
-    by default)."""
+    """Hooks into a :class:`~rlpipe.runner.Runner`: subclass and override the ones you need.
+
+    Every hook does nothing by default; pass instances as ``Runner(..., callbacks=[...])``.
+    """
 
     def on_eval(self, runner: Runner, result: EvalResult) -> None:
         """After each greedy evaluation (``runner.algo.frames`` frames in)."""

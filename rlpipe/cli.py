@@ -64,6 +64,25 @@ def to_config(cfg: DictConfig) -> Config:
     return OmegaConf.to_object(cfg)
 
 
+# dict-valued keys whose entries are the user's (gymnasium kwargs, a network's _target_ and
+# kwargs): `key.name=value` adds the entry, as `++key.name=value` would
+OPEN_KEYS = ("algo.network.", "env.kwargs.")
+
+
+def open_entries(overrides: Sequence[str]) -> list[str]:
+    """``algo.network._target_=...`` and ``env.kwargs.x=...`` without Hydra's ``+``."""
+    return [f"++{arg}" if arg.startswith(OPEN_KEYS) else arg for arg in overrides]
+
+
+def compose_run(*overrides: str) -> Config:
+    """The :class:`Config` that ``python -m rlpipe <overrides>`` would run.
+
+    The presets from Python: ``compose_run("+experiment=dqn_cartpole", "seed=1")``."""
+    register_configs()
+    with initialize_config_module(config_module="rlpipe.conf", version_base="1.3"):
+        return to_config(compose("config", overrides=open_entries(overrides)))
+
+
 def write_hydra_record(run_dir: str | Path, job_cfg: DictConfig) -> None:
     """Write Hydra's record of the job (``.hydra/config.yaml`` from ``job_cfg``, ``hydra.yaml``,
     ``overrides.yaml``) into ``run_dir`` unless it has one.

@@ -70,8 +70,10 @@ WANDB_MODES = ("online", "offline", "disabled")
 
 @dataclass
 class LoggerConfig:
-    """Where metrics go: ``csv`` (:class:`rlpipe.loggers.CsvLogger` in the run dir),
-    ``tensorboard``, ``wandb`` or ``mlflow`` (each on top of the CSV files), or ``none``."""
+    """Where metrics go: ``csv``, ``tensorboard``, ``wandb``, ``mlflow`` or ``none``.
+
+    ``csv`` is :class:`rlpipe.loggers.CsvLogger` in the run dir; the services also write the
+    CSV files."""
 
     backend: str = checked("csv", choices=LOGGER_BACKENDS)
     project: str | None = None  # W&B project / MLflow experiment (default "rlpipe")
@@ -101,6 +103,9 @@ class AlgoConfig:
     eval_every: int = 10_000  # frames between greedy evaluations (0: only at the end)
     eval_episodes: int = 10
     checkpoint_every: int = 25_000  # frames between checkpoints (0: only at the end)
+    # your network in place of the default: {_target_: my_pkg.MyNet, **kwargs}, built by Hydra's
+    # instantiate with in_features/out_features from the env (docs/api.md); {}: the default
+    network: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         check_run_keys(self, "algo.")

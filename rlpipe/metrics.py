@@ -163,8 +163,11 @@ NOT_GROUPED = ("seed", "resume")
 
 
 def group_runs(runs: Sequence[Path]) -> list[Group]:
-    """Group runs whose overrides agree but for ``seed`` and ``resume``; label groups by what
-    differs."""
+    """Group runs that differ only by ``seed`` (or ``resume``), each labelled by what sets it apart.
+
+    Runs whose overrides agree but for ``seed`` and ``resume`` form one group; a group's label
+    is its overrides that not every run shares (the first run's dir when there are none).
+    """
     keyed: dict[frozenset[str], list[Path]] = {}
     for run in runs:
         overrides = frozenset(o for o in run_overrides(run) if _key(o) not in NOT_GROUPED)

@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
-from typing import Protocol, runtime_checkable
+import importlib
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 import torch
 from torch import nn
 from torchrl.modules import MLP
+
+from rlpipe.errors import RlpipeError, check
 
 
 def mlp(in_features: int, out_features: int, hidden_sizes: Sequence[int]) -> nn.Module:
@@ -19,6 +22,86 @@ def mlp(in_features: int, out_features: int, hidden_sizes: Sequence[int]) -> nn.
         num_cells=list(hidden_sizes),
         activation_class=nn.ReLU,
     )
+
+
+def instantiate(spec: Mapping[str, Any], what: str, **sizes: int) -> Any:
+    """Build ``spec["_target_"](**kwargs)`` with Hydra's ``instantiate``; ``sizes`` fill the
+    keyword arguments ``spec`` leaves out. ``what`` names the config key in errors (one line)."""
+    from hydra.errors import InstantiationException
+    from hydra.utils import instantiate as hydra_instantiate
+
+    target = spec.get("_target_")
+    check(
+        isinstance(target, str) and "." in target,
+        f"{what}._target_ must name a class or function as module.Name, got {target!r}",
+    )
+    module, _, name = target.rpartition(".")
+    try:
+        found = hasattr(importlib.import_module(module), name)
+    except ModuleNotFoundError as err:
+        raise RlpipeError(
+            f"{what}._target_={target}: no module named {err.name!r}; put the directory "
+            f"holding it on PYTHONPATH (e.g. PYTHONPATH=. python -m rlpipe ...)"
+        ) from err
+    check(found, f"{what}._target_={target}: module {module} has no {name}")
+    kwargs = {key: value for key, value in sizes.items() if key not in spec}
+    try:
+        return hydra_instantiate(dict(spec), **kwargs, _convert_="all")
+    except InstantiationException as err:
+        raise RlpipeError(
+            f"{what}: cannot build {target} ({_reason(err.__cause__ or err)})"
+        ) from err
+
+
+def user_network(
+    network: nn.Module | None,
+    spec: Mapping[str, Any] | None,
+    *,
+    in_features: int,
+    out_features: int,
+    outputs: str,
+) -> nn.Module | None:
+    """The network a user brought in place of an algorithm's default, or None.
+
+    ``network``: a module (Python); ``spec``: ``algo.network``, a Hydra-style
+    ``{"_target_": "my_pkg.MyNet", **kwargs}`` built with ``in_features`` and ``out_features``
+    (unless it sets them). Either way the network must map a batch of ``in_features`` inputs to
+    ``out_features`` outputs (``outputs`` says what they are, for the error).
+    """
+    check(
+        network is None or not spec,
+        "a network was given both as an object and as algo.network; give one of them",
+    )
+    if network is None and spec:
+        network = instantiate(
+            spec, "algo.network", in_features=in_features, out_features=out_features
+        )
+    if network is None:
+        return None
+    name = type(network).__name__
+    check(isinstance(network, nn.Module), f"algo.network must build a torch nn.Module, got {name}")
+    device = next((p.device for p in network.parameters()), torch.device("cpu"))
+    try:
+        with torch.no_grad():
+            out = network(torch.zeros(2, in_features, device=device))
+    except Exception as err:  # the user's module: any failure is theirs to see, in one line
+        raise RlpipeError(
+            f"the network {name} fails on a batch of 2 inputs of size {in_features} "
+            f"({_reason(err)})"
+        ) from err
+    check(
+        isinstance(out, torch.Tensor) and out.shape == (2, out_features),
+        f"the network {name} maps a batch of 2 inputs of size {in_features} to "
+        f"{tuple(out.shape) if isinstance(out, torch.Tensor) else type(out).__name__}; "
+        f"this algorithm needs (2, {out_features}): {outputs}",
+    )
+    return network
+
+
+def _reason(err: BaseException) -> str:
+    """An exception as one line: its type and the first line of its message."""
+    lines = str(err).strip().splitlines()
+    return f"{type(err).__name__}: {lines[0]}" if lines else type(err).__name__
 
 
 @runtime_checkable

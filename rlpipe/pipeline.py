@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from torch import nn
 
 from rlpipe.algos import make_algorithm
 from rlpipe.callbacks import make_callbacks
@@ -15,16 +16,15 @@ from rlpipe.checkpoint import fitting, prune_checkpoints
 from rlpipe.config import RUN_KEYS, Config
 from rlpipe.envs import make_env
 from rlpipe.episodes import eval_envs
-from rlpipe.errors import RlpipeError
 from rlpipe.loggers import make_logger
 from rlpipe.metrics import truncate_metrics
 from rlpipe.rundir import (
     CONFIG_FILE,
     check_same_run,
-    config_to_dict,
     lock_run_dir,
     resume_state,
     save_config,
+    unwritable,
 )
 from rlpipe.runner import Runner, RunResult, check_budget
 from rlpipe.runtime import resolve_device, seed_everything, set_threads
@@ -33,7 +33,11 @@ SEED_RANGE = 2**32  # environment seeds derived from cfg.seed wrap around at num
 
 
 def train(
-    cfg: Config, run_dir: str | Path, *, on_start: Callable[[Path], None] | None = None
+    cfg: Config,
+    run_dir: str | Path,
+    *,
+    network: nn.Module | None = None,
+    on_start: Callable[[Path], None] | None = None,
 ) -> RunResult:
     """Train ``cfg.algo`` on ``cfg.env`` for ``cfg.total_frames`` frames, writing into ``run_dir``.
 
@@ -44,6 +48,10 @@ def train(
     checked and built, and the checkpoint applied, before anything in the dir is written, so a
     bad config or a mismatched checkpoint changes nothing. ``on_start(run_dir)`` runs then (the
     command line records Hydra's files with it).
+
+    ``network``: your module in place of the algorithm's default network (a Python object:
+    ``config.yaml`` cannot hold it, so pass it again to resume or to :func:`~rlpipe.load_run`;
+    ``cfg.algo.network``, a ``_target_`` spec, needs neither).
     """
     cfg = cfg.resolved()
     device = resolve_device(cfg.device)
@@ -52,7 +60,7 @@ def train(
         check_same_run(cfg, run_dir)  # before the lock file is written
     with lock_run_dir(run_dir):
         found = resume_state(cfg, run_dir, required=bool(cfg.resume))
-        return _train_locked(cfg, run_dir, device, found, on_start)
+        return _train_locked(cfg, run_dir, device, found, network, on_start)
 
 
 def _train_locked(
@@ -60,6 +68,7 @@ def _train_locked(
     run_dir: Path,
     device: torch.device,
     found: tuple[Path, dict[str, Any]] | None,
+    network: nn.Module | None,
     on_start: Callable[[Path], None] | None,
 ) -> RunResult:
     frames = found[1]["frames"] if found else 0
@@ -73,6 +82,7 @@ def _train_locked(
             partial(make_env, cfg.env, seed=(cfg.seed + frames) % SEED_RANGE),
             cfg.algo,
             device=device,
+            network=network,
         )
     except BaseException:
         eval_env.close()
@@ -87,7 +97,7 @@ def _train_locked(
             keep_checkpoints=cfg.keep_checkpoints,
             callbacks=make_callbacks(cfg),  # before the logger: a bad video setting writes nothing
             progress=cfg.progress,
-            extra_state={"config": config_to_dict(cfg)},
+            config=cfg,  # config.yaml, and in every checkpoint
         )
         if found is not None:
             with fitting(found[0]):
@@ -98,10 +108,7 @@ def _train_locked(
             truncate_metrics(run_dir, frames)
             prune_checkpoints(run_dir / "checkpoints", cfg.keep_checkpoints)
         except OSError as err:
-            raise RlpipeError(
-                f"cannot write the run directory {run_dir}: {err.strerror or err}; "
-                "pick a writable one with hydra.run.dir=<dir>"
-            ) from err
+            raise unwritable(run_dir, err) from err
         if on_start is not None:
             on_start(run_dir)
         runner.logger = make_logger(cfg.logger, run_dir)

@@ -12,7 +12,7 @@ import fcntl
 import os
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, fields, is_dataclass
+from dataclasses import dataclass, fields, is_dataclass, replace
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -20,6 +20,7 @@ from typing import Any
 import torch
 import yaml
 from omegaconf import OmegaConf
+from torch import nn
 
 from rlpipe.algos import ALGORITHMS, Algorithm, make_algorithm
 from rlpipe.checkpoint import fitting, list_checkpoints, load_checkpoint, load_latest
@@ -76,6 +77,32 @@ def _build(cls: type, data: dict[str, Any]) -> Any:
     return cls(**{k: v for k, v in data.items() if k in _names(cls)})
 
 
+def describe_run(algo: Algorithm, **run: Any) -> Config | None:
+    """The :class:`Config` of a run a hand-built :class:`~rlpipe.runner.Runner` drives, or None.
+
+    Known when ``algo`` is an rlpipe algorithm (its ``cfg`` a registered algorithm config)
+    built on an env factory made as ``functools.partial(make_env, EnvConfig(...), seed=s)``
+    (``seed`` left out: torch's initial seed, what :func:`~rlpipe.seed_everything` set). ``run``:
+    the runner's :data:`~rlpipe.config.RUN_KEYS`, ``keep_checkpoints`` and ``progress``.
+    """
+    cfg, factory = getattr(algo, "cfg", None), getattr(algo, "env_factory", None)
+    known = cfg is not None and ALGORITHMS.get(getattr(cfg, "name", None), (None,))[0] is type(cfg)
+    by_make_env = isinstance(factory, partial) and factory.func is make_env
+    if not (known and by_make_env and factory.args and isinstance(factory.args[0], EnvConfig)):
+        return None
+    env, options = factory.args[0], factory.keywords
+    if options.get("num_envs"):
+        env = replace(env, num_envs=options["num_envs"])
+    seed = options.get("seed")
+    return Config(
+        env=env,
+        algo=replace(cfg, **{key: run[key] for key in RUN_KEYS}),
+        seed=torch.initial_seed() % 2**32 if seed is None else seed,
+        device=str(getattr(algo, "device", "auto")),
+        **run,
+    )
+
+
 def fingerprint(cfg: Config | dict[str, Any]) -> dict[str, Any]:
     """What decides a run's results, flat (``{"algo.lr": 0.0001, "seed": 0, ...}``): algorithm,
     env, architecture, hyper-parameters and seed; not budgets, cadences, logging or progress."""
@@ -122,10 +149,7 @@ def lock_run_dir(run_dir: str | Path) -> Iterator[None]:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
     except OSError as err:
-        raise RlpipeError(
-            f"cannot write the run directory {run_dir}: {err.strerror or err}; "
-            "pick a writable one with hydra.run.dir=<dir>"
-        ) from err
+        raise unwritable(run_dir, err) from err
     try:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -142,11 +166,26 @@ def lock_run_dir(run_dir: str | Path) -> Iterator[None]:
         os.close(fd)  # closing the descriptor releases the lock
 
 
+def unwritable(run_dir: str | Path, err: OSError) -> RlpipeError:
+    """The one-line error for a run dir that cannot be written."""
+    return RlpipeError(
+        f"cannot write the run directory {run_dir}: {err.strerror or err}; "
+        "pick a writable one with hydra.run.dir=<dir>"
+    )
+
+
 def save_config(cfg: Config, run_dir: str | Path) -> Path:
-    """Write ``run_dir/config.yaml`` (atomically: a reader sees the old file or the new)."""
+    """Write ``run_dir/config.yaml`` unless it already holds ``cfg`` (atomically: a reader sees
+    the old file or the new); an :class:`RlpipeError` if the dir cannot be written."""
     path = Path(run_dir) / CONFIG_FILE
-    path.parent.mkdir(parents=True, exist_ok=True)
-    write_atomic(path, OmegaConf.to_yaml(config_to_dict(cfg)).encode())
+    data = OmegaConf.to_yaml(config_to_dict(cfg)).encode()
+    try:
+        if path.is_file() and path.read_bytes() == data:
+            return path
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write_atomic(path, data)
+    except OSError as err:
+        raise unwritable(run_dir, err) from err
     return path
 
 
@@ -154,7 +193,8 @@ def load_config(run_dir: str | Path, *, allow_env_import: bool = False) -> Confi
     """The :class:`Config` a run was started with (``run_dir/config.yaml``).
 
     A run dir is data: an ``env.id`` of the form ``module:Id`` (which makes gymnasium import
-    ``module``) is refused unless ``allow_env_import`` (only for run dirs you trust).
+    ``module``) or an ``algo.network`` (whose ``_target_`` is imported and called) is refused
+    unless ``allow_env_import`` (only for run dirs you trust).
     """
     path = Path(run_dir) / CONFIG_FILE
     check(Path(run_dir).is_dir(), f"run directory {run_dir} does not exist")
@@ -171,10 +211,13 @@ def load_config(run_dir: str | Path, *, allow_env_import: bool = False) -> Confi
     except (RlpipeError, yaml.YAMLError, TypeError, ValueError, KeyError, AttributeError) as err:
         reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         raise RlpipeError(f"{path} is damaged ({reason}); it is not a config rlpipe wrote") from err
+    code = [f"env.id={cfg.env.id!r}"] if ":" in cfg.env.id else []
+    if cfg.algo.network:
+        code.append(f"algo.network._target_={cfg.algo.network.get('_target_')!r}")
     check(
-        allow_env_import or ":" not in cfg.env.id,
-        f"{path} names env.id={cfg.env.id!r}, which would import its module: a run dir is "
-        "data, not code; pass allow_env_import=true if you trust this run dir",
+        allow_env_import or not code,
+        f"{path} names {code[0] if code else ''}, which would import its module: a run dir "
+        "is data, not code; pass allow_env_import=true if you trust this run dir",
     )
     return cfg
 
@@ -210,17 +253,22 @@ def load_run(
     device: str | torch.device = "cpu",
     num_envs: int = 1,
     allow_env_import: bool = False,
+    network: nn.Module | None = None,
 ) -> LoadedRun:
-    """Rebuild a run's algorithm on ``num_envs`` fresh env copies and load its checkpoint
+    """Rebuild a run from its ``config.yaml`` and a checkpoint, as a :class:`LoadedRun`.
+
+    The algorithm is built on ``num_envs`` fresh env copies and loads its checkpoint
     (``checkpoint``: a file name in ``run_dir/checkpoints``; None: the newest that loads).
 
-    ``allow_env_import``: see :func:`load_config`. The caller owns ``LoadedRun.algo`` and must
-    ``close()`` it.
+    ``allow_env_import``: see :func:`load_config`. ``network``: the module a run was trained
+    with in place of the default (a Python object, which ``config.yaml`` cannot hold; a
+    ``algo.network`` spec is rebuilt from the config). The caller owns ``LoadedRun.algo`` and
+    must ``close()`` it.
     """
     cfg = load_config(run_dir, allow_env_import=allow_env_import)
     path, state = read_checkpoint(run_dir, checkpoint)
     factory = partial(make_env, cfg.env, num_envs=num_envs, seed=cfg.seed)
-    algo = make_algorithm(factory, cfg.algo, device=device)
+    algo = make_algorithm(factory, cfg.algo, device=device, network=network)
     try:
         with fitting(path):
             algo.load_state_dict(state["algo"])

@@ -20,9 +20,11 @@ from rlpipe.algos.base import EPISODE_RETURN, Algorithm, Metrics
 from rlpipe.cadence import Cadence, Window
 from rlpipe.callbacks import Callback
 from rlpipe.checkpoint import checkpoint_path, list_checkpoints, save_checkpoint
+from rlpipe.config import Config
 from rlpipe.episodes import EvalResult, EvalStopped, evaluate
 from rlpipe.errors import RlpipeError, check
 from rlpipe.files import write_atomic
+from rlpipe.rundir import config_to_dict, describe_run, save_config
 from rlpipe.runtime import rng_state, set_rng_state
 
 SUMMARY_FILE = "summary.json"
@@ -72,14 +74,22 @@ def check_budget(algo: Algorithm, total_frames: int | None) -> None:
 
 
 class Runner:
-    """Drive an :class:`~rlpipe.algos.Algorithm` until ``total_frames`` frames or its own
-    ``budget`` of iterations (REINFORCE epochs, ARS iterations), whichever comes first.
+    """The training loop: drives an :class:`~rlpipe.algos.Algorithm` until the run's end.
+
+    The end is ``total_frames`` frames or the algorithm's own ``budget`` of iterations
+    (REINFORCE epochs, ARS iterations), whichever comes first.
 
     Shows a progress bar (frames/s, latest training episode return, last eval), evaluates
     the greedy policy every ``eval_every`` frames and at the end, logs ``train/``, ``eval/``
     and ``time/`` metrics through a TorchRL logger, and writes atomic checkpoints every
     ``checkpoint_every`` frames and at the end into ``<run_dir>/checkpoints`` (newest
     ``keep_checkpoints`` kept). ``callbacks`` (:class:`Callback`) see every evaluation and the end.
+
+    ``config`` (a :class:`~rlpipe.config.Config`) is written to ``<run_dir>/config.yaml`` and
+    into every checkpoint, so ``load_run``, ``rlpipe.evaluate``, ``rlpipe.plot`` and ``train``
+    (resume) work on the run; left out, it is read off an rlpipe algorithm built on
+    ``functools.partial(make_env, EnvConfig(...), seed=s)`` (:func:`~rlpipe.rundir.describe_run`);
+    otherwise no ``config.yaml`` is written.
     """
 
     def __init__(
@@ -98,8 +108,19 @@ class Runner:
         log_every: int = 1_000,
         extra_state: dict[str, Any] | None = None,
         callbacks: Sequence[Callback] = (),
+        config: Config | None = None,
     ) -> None:
         check_budget(algo, total_frames)
+        run_keys = dict(
+            total_frames=total_frames,
+            eval_every=eval_every,
+            eval_episodes=eval_episodes,
+            checkpoint_every=checkpoint_every,
+        )
+        # what config.yaml records: given, or read off the algorithm and its env factory
+        self.config = config or describe_run(
+            algo, **run_keys, keep_checkpoints=keep_checkpoints, progress=progress
+        )
         self.algo = algo
         self.eval_env = eval_env
         self.run_dir = Path(run_dir)
@@ -117,6 +138,7 @@ class Runner:
         self._start = time.perf_counter()
         self._elapsed_before = 0.0  # wall seconds of the run before a resume
         self._eval_seconds = 0.0
+        self._elapsed_at = -1  # frames of the last time/elapsed row (one row per frames)
         self._signal: int | None = None
         self._pending_eval = False  # an evaluation a signal cut short, to run first on resume
         self._last_return = math.nan  # of the latest finished training episode
@@ -135,6 +157,10 @@ class Runner:
             stored = self._stored_summary()
             if stored is not None or self.last_eval is not None:
                 return self._finished_before(stored)
+        if self.config is not None:
+            save_config(self.config, self.run_dir)
+        if hasattr(self.algo, "frame_limit"):  # it can end its last batch at the budget
+            self.algo.frame_limit = self.total_frames
         start = self._start = time.perf_counter() - self._elapsed_before
         handlers = self._catch_signals()
         frames = self.algo.frames
@@ -236,6 +262,7 @@ class Runner:
             self._flush()
         state = {
             **self.extra_state,
+            **({} if self.config is None else {"config": config_to_dict(self.config)}),
             "algo": self.algo.state_dict(),
             "frames": self.algo.frames,
             "rng": rng_state(),
@@ -244,6 +271,7 @@ class Runner:
                 "eval_seconds": self._eval_seconds,
                 "last_eval": None if self.last_eval is None else asdict(self.last_eval),
                 "pending_eval": self._pending_eval,
+                "elapsed_at": self._elapsed_at,
             },
         }
         path = checkpoint_path(self.run_dir / "checkpoints", self.algo.frames)
@@ -264,6 +292,7 @@ class Runner:
         last = runner.get("last_eval")
         self.last_eval = None if last is None else EvalResult(**last)
         self._pending_eval = bool(runner.get("pending_eval", False))
+        self._elapsed_at = int(runner.get("elapsed_at", -1))
 
     def _catch_signals(self) -> dict[int, Any]:
         """Route SIGINT/SIGTERM to a flag checked after each iteration (main thread only)."""
@@ -308,8 +337,7 @@ class Runner:
         now, frames = time.perf_counter(), self.algo.frames
         scalars = self._window.pop()
         scalars["time/fps"] = (frames - self._window_frames) / max(now - self._window_start, 1e-9)
-        scalars["time/elapsed"] = now - self._start
-        self._log(scalars)
+        self._log({**scalars, **self._elapsed(now)})
         self._window_start, self._window_frames = now, frames
         return self._postfix(scalars["time/fps"])
 
@@ -354,9 +382,17 @@ class Runner:
         # wall time spent training so far, evaluations excluded
         scalars["time/train_seconds"] = start - self._start - self._eval_seconds
         self._eval_seconds += scalars["time/eval_seconds"]
-        self._log(scalars)
+        self._log({**scalars, **self._elapsed(start)})
         for callback in self.callbacks:
             callback.on_eval(self, self.last_eval)
+
+    def _elapsed(self, now: float) -> dict[str, float]:
+        """``time/elapsed`` (wall seconds of the run at ``now``) unless these frames have it:
+        every log flush and every evaluation row carry one, each frame count once."""
+        if self.algo.frames == self._elapsed_at:
+            return {}
+        self._elapsed_at = self.algo.frames
+        return {"time/elapsed": now - self._start}
 
     def _log(self, scalars: dict[str, float]) -> None:
         if self.logger is None:

@@ -15,10 +15,13 @@ TINY = ["progress=false", "total_frames=200", "eval_every=100", "eval_episodes=2
 
 
 def run_module(
-    module: str, *args: str, cwd: Path, timeout: float = 300
+    module: str, *args: str, cwd: Path, timeout: float = 300, pythonpath: Path | None = None
 ) -> subprocess.CompletedProcess:
-    """``python -m <module> args...`` in ``cwd``; returns the completed process (text output)."""
+    """``python -m <module> args...`` in ``cwd`` (``pythonpath``: a folder to import from);
+    returns the completed process (text output)."""
     env = {**os.environ, "SDL_VIDEODRIVER": "dummy"}
+    if pythonpath is not None:
+        env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(pythonpath), env.get("PYTHONPATH")]))
     env.pop("HYDRA_FULL_ERROR", None)
     return subprocess.run(
         [sys.executable, "-m", module, *args],

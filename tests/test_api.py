@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import ast
 import importlib
+import inspect
 import pkgutil
 import re
 from pathlib import Path
@@ -13,7 +14,9 @@ import rlpipe
 from rlpipe import EnvConfig, EvalResult, make_env
 from rlpipe.heuristic import random_policy
 
-README = Path(__file__).resolve().parents[1] / "README.md"
+ROOT = Path(__file__).resolve().parents[1]
+README = ROOT / "README.md"
+API_PAGE = ROOT / "docs" / "api.md"
 
 
 def test_readme_python_example_runs(tmp_path, monkeypatch):
@@ -61,3 +64,57 @@ def test_importing_submodules_keeps_the_public_names() -> None:
     finally:
         env.close()
     assert isinstance(result, EvalResult) and len(result.returns) == 2
+
+
+def _public_objects() -> list[tuple[str, object]]:
+    """Each public name and what it is (the function, when ``rlpipe.evaluate`` is the module
+    standing in for it)."""
+    objects = []
+    for name in rlpipe.__all__:
+        value = getattr(rlpipe, name)
+        if isinstance(value, ModuleType):
+            value = value.__wrapped__
+        objects.append((name, value))
+    return objects
+
+
+def _own_docstring(value: object) -> str | None:
+    """``value``'s own docstring: a class's from its body (not a base's, and not the
+    ``Name(field=...)`` signature that ``dataclass`` writes when there is none)."""
+    if inspect.isclass(value):
+        doc = vars(value).get("__doc__")
+        if doc and doc.startswith(f"{value.__name__}("):  # dataclass boilerplate
+            return None
+        return doc
+    return value.__doc__
+
+
+def test_every_public_name_has_a_one_line_summary() -> None:
+    """``help(rlpipe.X)`` starts with a summary: the docstring's first line is a sentence of
+    its own (PEP 257), followed by a blank line or nothing. Constants such as ``ALGORITHMS``
+    carry no docstring: the package docstring and docs/api.md describe them instead."""
+    problems = []
+    for name, value in _public_objects():
+        if not (inspect.isclass(value) or inspect.isroutine(value)):
+            if f"`{name}`" not in API_PAGE.read_text():
+                problems.append(f"{name}: a constant, not described in docs/api.md")
+            continue
+        doc = _own_docstring(value)
+        if not doc or not doc.strip():
+            problems.append(f"{name}: no docstring of its own")
+            continue
+        lines = inspect.cleandoc(doc).splitlines()
+        if not lines[0].endswith("."):
+            problems.append(f"{name}: the first line is not a sentence: {lines[0]!r}")
+        elif len(lines) > 1 and lines[1].strip():
+            problems.append(f"{name}: the summary runs over two lines: {lines[0]!r}")
+    assert not problems, "\n".join(problems)
+
+
+def test_package_docstring_lists_every_public_name() -> None:
+    """``help(rlpipe)`` reads as an API index: one line per public name, name first."""
+    doc = rlpipe.__doc__ or ""
+    indexed = re.findall(r"^ +(\w+)  +\S", doc, re.M)
+    missing = sorted(set(rlpipe.__all__) - set(indexed))
+    extra = sorted({n for n in indexed if n not in rlpipe.__all__ or indexed.count(n) > 1})
+    assert not missing and not extra, f"not listed: {missing}; not public or listed twice: {extra}"

@@ -20,7 +20,7 @@ import pytest
 import torch
 from conftest import TINY
 from tensordict import TensorDict
-from tensordict.nn import TensorDictModule
+from tensordict.nn import TensorDictModule, TensorDictSequential
 from test_config import compose_config
 from torch import nn
 from torch.nn.utils import parameters_to_vector, vector_to_parameters
@@ -476,3 +476,63 @@ def test_a_killed_worker_stops_training_with_one_line():
         algo.close()
         assert time.monotonic() - start < 5
     assert set(multiprocessing.active_children()) == before  # the other worker is stopped too
+
+
+def _documented_search(seed: int = 7) -> ARSSearch:
+    """An ARSSearch as docs/api.md builds one: a fresh MLP on Pendulum-v1, its ``Normalizer``
+    both inside the policy and passed as ``normalizer=``."""
+    normalizer = Normalizer(3)
+    net = nn.Sequential(nn.Linear(3, 8), nn.Tanh(), nn.Linear(8, 1))
+    policy = TensorDictSequential(
+        TensorDictModule(normalizer, in_keys=["observation"], out_keys=["observation_norm"]),
+        TensorDictModule(net, in_keys=["observation_norm"], out_keys=["action"]),
+    )
+    return ARSSearch(
+        policy,
+        partial(make_env, PENDULUM, vectorization="sync"),
+        num_directions=3,
+        num_best=2,
+        max_steps=20,
+        normalizer=normalizer,
+        workers=1,
+        seed=seed,
+    )
+
+
+def test_search_state_dict_saved_to_a_file_resumes_exactly(tmp_path):
+    """Saved after 2 iterations and loaded into a fresh search (fresh weights, fresh normaliser),
+    the next 2 iterations are those the saved search ran: same returns, same θ, same statistics.
+    Pendulum-v1's reset(seed) fixes each episode, so the env copies' history does not matter."""
+    torch.manual_seed(0)
+    search = _documented_search()
+    try:
+        for _ in range(2):
+            search.step()
+        torch.save(search.state_dict(), tmp_path / "search.pt")
+        kept = search.state_dict()  # in memory: a copy too, which the next steps leave alone
+        saved_theta = search.theta
+        expected = [search.step() for _ in range(2)]
+    finally:
+        search.close()
+    saved = torch.load(tmp_path / "search.pt", weights_only=True)
+    assert kept["iterations"] == saved["iterations"] == 2
+    assert torch.equal(kept["generator"], saved["generator"])
+    for key, value in saved["policy"].items():
+        assert torch.equal(kept["policy"][key], value), key
+    torch.manual_seed(1)  # other initial weights: the state must bring θ back
+    resumed = _documented_search()
+    assert not torch.equal(resumed.theta, saved_theta)
+    try:
+        resumed.load_state_dict(torch.load(tmp_path / "search.pt", weights_only=True))
+        assert resumed.iterations == 2 and torch.equal(resumed.theta, saved_theta)
+        got = [resumed.step() for _ in range(2)]
+    finally:
+        resumed.close()
+    for before, after in zip(expected, got):
+        assert after["episode_return"] == before["episode_return"]
+        assert after["episode_length"] == before["episode_length"] == [20.0] * 6
+        assert after["return_mean"] == before["return_mean"]
+    assert torch.equal(resumed.theta, search.theta)
+    for key in ("count", "mean", "m2", "loc", "scale"):
+        assert torch.equal(getattr(resumed.normalizer, key), getattr(search.normalizer, key)), key
+    assert resumed.normalizer.count == 4 * 6 * 20  # every observation of the 4 iterations

@@ -175,3 +175,23 @@ def test_state_dict_round_trip(dqn):
 def test_continuous_actions_are_refused():
     with pytest.raises(RlpipeError, match="discrete action space"):
         DQN(partial(make_env, EnvConfig(id="Pendulum-v1")), DQNConfig())
+
+
+@pytest.mark.parametrize(("total", "expected"), [(100, 100), (102, 104)])
+def test_total_frames_is_exact_to_whole_steps_of_the_copies(tmp_path, total, expected):
+    """The last batch stops at the budget (16 frames per batch on 4 copies): exact when the
+    budget is a multiple of the copies, else the next whole step; the cut batch is fresh data."""
+    from rlpipe.runner import Runner
+
+    env_cfg = EnvConfig(num_envs=4)
+    algo = DQN(
+        partial(make_env, env_cfg, seed=0),
+        DQNConfig(**{**SMALL, "frames_per_batch": 16, "buffer_size": 128}),
+    )
+    eval_env = make_env(env_cfg, num_envs=2, seed=1)
+    result = Runner(algo, eval_env, tmp_path, total_frames=total, progress=False).run()
+    assert result.frames == algo.frames == len(algo.buffer) == expected
+    steps = algo.buffer[:expected]["observation"]
+    assert len(torch.unique(steps, dim=0)) == expected  # no step stored twice
+    algo.close()
+    eval_env.close()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from functools import partial
 
 import pytest
@@ -68,3 +69,63 @@ def test_runner_logs_checkpoints_and_summarises(tmp_path):
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["frames"] == 400 and summary["eval_mean"] == pytest.approx(result.eval_mean)
     assert "final eval" in result.summary_line() and str(tmp_path) in result.summary_line()
+
+
+def test_a_runner_run_is_a_run_for_evaluate_plot_and_resume(tmp_path):
+    """A hand-built Runner writes config.yaml: the CLI evaluates it, plots group it, and
+    ``train`` continues it from its checkpoint."""
+    from conftest import run_module
+
+    from rlpipe.metrics import find_runs, group_runs, read_metric
+    from rlpipe.pipeline import train
+    from rlpipe.rundir import load_config
+
+    torch.manual_seed(3)
+    env_cfg = EnvConfig(id="CartPole-v1", num_envs=2)
+    algo = DQN(partial(make_env, env_cfg, seed=3), DQNConfig(frames_per_batch=16))
+    eval_env = make_env(env_cfg, num_envs=2, seed=1)
+    run_dir = tmp_path / "by-hand"
+    logger = make_logger(LoggerConfig("csv"), run_dir)
+    Runner(
+        algo,
+        eval_env,
+        run_dir,
+        total_frames=64,
+        eval_every=32,
+        eval_episodes=2,
+        logger=logger,
+        progress=False,
+    ).run()
+    algo.close()
+    eval_env.close()
+    cfg = load_config(run_dir)
+    assert (cfg.env, cfg.seed, cfg.total_frames, cfg.eval_every) == (env_cfg, 3, 64, 32)
+    assert cfg.algo == DQNConfig(
+        frames_per_batch=16,
+        total_frames=64,
+        eval_every=32,
+        eval_episodes=2,
+        checkpoint_every=25_000,
+    )
+    assert load_checkpoint(list_checkpoints(run_dir / "checkpoints")[-1])["config"]["seed"] == 3
+    done = run_module("rlpipe.evaluate", f"run_dir={run_dir}", "episodes=2", cwd=tmp_path)
+    assert done.returncode == 0 and "on CartPole-v1: return" in done.stdout, done.stderr
+    assert [g.runs for g in group_runs(find_runs([tmp_path]))] == [[run_dir]]
+    result = train(replace(cfg, total_frames=96, progress=False), run_dir)  # resumes at 64
+    assert result.frames == 96
+    assert read_metric(run_dir, "eval/return_mean")[0].tolist() == [32, 64, 96]
+    # every eval row has its times, and no frame count has two time/elapsed rows
+    elapsed = read_metric(run_dir, "time/elapsed")[0].tolist()
+    assert len(set(elapsed)) == len(elapsed) and {32, 64, 96} <= set(elapsed)
+    assert read_metric(run_dir, "time/train_seconds")[0].tolist() == [32, 64, 96]
+
+
+def test_a_runner_without_a_known_config_writes_none(tmp_path):
+    torch.manual_seed(0)
+    env_cfg = EnvConfig(id="CartPole-v1")
+    algo = DQN(lambda: make_env(env_cfg), DQNConfig(frames_per_batch=16))  # not a partial
+    eval_env = make_env(env_cfg, seed=1)
+    Runner(algo, eval_env, tmp_path, total_frames=16, eval_episodes=1, progress=False).run()
+    algo.close()
+    eval_env.close()
+    assert (tmp_path / "summary.json").is_file() and not (tmp_path / "config.yaml").exists()

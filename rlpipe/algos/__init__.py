@@ -6,6 +6,7 @@ from collections.abc import Callable
 from typing import Any
 
 import torch
+from torch import nn
 
 from rlpipe.algos.ars import ARS, ARSConfig
 from rlpipe.algos.base import Algorithm, Metrics
@@ -40,8 +41,15 @@ ALGORITHMS: dict[str, tuple[type, Callable[..., Algorithm]]] = {
 
 
 def make_algorithm(
-    env_factory: EnvFactory, cfg: Any, *, device: str | torch.device = "cpu"
+    env_factory: EnvFactory,
+    cfg: Any,
+    *,
+    device: str | torch.device = "cpu",
+    network: nn.Module | None = None,
 ) -> Algorithm:
-    """Build the algorithm named by ``cfg.name`` on envs from ``env_factory``."""
+    """Build the algorithm named by ``cfg.name`` on envs from ``env_factory``.
+
+    ``network``: your module in place of the algorithm's default network."""
     check_choice(cfg.name, "algo.name", ALGORITHMS)
-    return ALGORITHMS[cfg.name][1](env_factory, cfg, device=device)
+    extra = {} if network is None else {"network": network}
+    return ALGORITHMS[cfg.name][1](env_factory, cfg, device=device, **extra)

@@ -10,10 +10,12 @@ from typing import Any, ClassVar, Protocol, runtime_checkable
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
+from torch import nn
 from torchrl.collectors import Collector
 from torchrl.envs import EnvBase
 
 from rlpipe.envs import EnvFactory
+from rlpipe.models import mlp, user_network
 
 # Scalars are averaged over the runner's logging window; lists hold one value per event
 # (e.g. one return per finished training episode) and are logged row by row.
@@ -41,7 +43,8 @@ class Algorithm(Protocol):
     finite_keys: ClassVar[tuple[str, ...]]  # metrics that must stay finite (else: diverged)
     # optional: `divergence_hint` (str), the advice a divergence error ends with, and
     # `should_stop` (a callable the runner sets: True once SIGINT/SIGTERM arrived), which a
-    # long train_step may poll to end its iteration early in a consistent state
+    # long train_step may poll to end its iteration early in a consistent state, and
+    # `frame_limit` (the runner sets its total_frames), where train_step stops collecting
 
     def train_step(self) -> Metrics:
         """Run one iteration (collect and update); advance ``frames``; return metrics."""
@@ -77,35 +80,36 @@ def closing_on_error(env: EnvBase) -> Iterator[EnvBase]:
         raise
 
 
-def make_collector(
-    env: EnvBase, policy: TensorDictModuleBase, frames_per_batch: int, device: torch.device
-) -> Collector:
-    """An endless TorchRL ``Collector`` of at least ``frames_per_batch`` frames per batch (rounded
-    up to whole steps of the env's copies), policy and storage on ``device``."""
-    num_envs = max(env.batch_size.numel(), 1)
-    return Collector(
-        env,
-        policy,
-        frames_per_batch=math.ceil(frames_per_batch / num_envs) * num_envs,
-        total_frames=-1,
-        policy_device=device,
-        storing_device=device,
-    )
+class BatchCut:
+    """A TorchRL collector interruptor that ends the next batch after ``steps`` env steps
+    (``None``: the whole batch); see :meth:`EnvAlgorithm.collect`."""
+
+    def __init__(self) -> None:
+        self.steps: int | None = None
+
+    def collection_stopped(self) -> bool:
+        """Called by the collector after each env step of a batch."""
+        if self.steps is None:
+            return False
+        self.steps -= 1
+        return self.steps <= 0
 
 
 class EnvAlgorithm:
     """What DQN, REINFORCE and MBRL share: built on one env from the factory (closed again if
     building fails), frame and iteration counters, and a state dict over named attributes.
 
-    Subclasses implement ``_build(env)`` (``self.cfg`` and ``self.device`` are set) and
-    ``train_step``, and list in ``state_attrs`` the attributes a checkpoint holds: anything with
-    ``state_dict``/``load_state_dict`` (modules, optimizers, replay buffers) or
+    ``network`` (or ``cfg.network``) replaces the algorithm's default network (see
+    :meth:`network`). Subclasses implement ``_build(env)`` (``self.cfg`` and ``self.device`` are
+    set) and ``train_step``, and list in ``state_attrs`` the attributes a checkpoint holds:
+    anything with ``state_dict``/``load_state_dict`` (modules, optimizers, replay buffers) or
     ``get_state``/``set_state`` (torch generators). ``_restored`` runs after a load.
     """
 
     finite_keys: ClassVar[tuple[str, ...]] = (LOSS,)
     state_attrs: ClassVar[tuple[str, ...]] = ()
     budget: int | None = None  # frames only: the run's total_frames
+    frame_limit: int | None = None  # the runner sets its total_frames: collect no further
     divergence_hint = "try a smaller algo.lr"
 
     @staticmethod
@@ -113,15 +117,65 @@ class EnvAlgorithm:
         """Whether a signal asks the current iteration to end early (the runner replaces it)."""
         return False
 
-    def __init__(self, env_factory: EnvFactory, cfg: Any, *, device: str | torch.device = "cpu"):
+    def __init__(
+        self,
+        env_factory: EnvFactory,
+        cfg: Any,
+        *,
+        device: str | torch.device = "cpu",
+        network: nn.Module | None = None,
+    ):
         self.cfg = cfg
         self.device = torch.device(device)
         self.frames = self.iterations = 0
+        self._network = network  # the user's, in place of the default (or cfg.network)
+        self.env_factory = env_factory
         with closing_on_error(env_factory()) as env:
             self._build(env)
 
     def _build(self, env: EnvBase) -> None:
         raise NotImplementedError
+
+    def network(self, in_features: int, out_features: int, outputs: str) -> nn.Module:
+        """The user's network (``network=`` or ``cfg.network``, checked to map ``in_features``
+        to ``out_features``), else the default: an MLP with ``cfg.hidden_sizes``."""
+        given = user_network(
+            self._network,
+            self.cfg.network,
+            in_features=in_features,
+            out_features=out_features,
+            outputs=outputs,
+        )
+        return given if given is not None else mlp(in_features, out_features, self.cfg.hidden_sizes)
+
+    def make_collector(
+        self, env: EnvBase, policy: TensorDictModuleBase, frames_per_batch: int
+    ) -> None:
+        """An endless TorchRL ``Collector`` (``self.collector``) of ``frames_per_batch`` frames per
+        batch, rounded up to whole steps of the env's copies; policy and storage on the device."""
+        self._copies = max(env.batch_size.numel(), 1)
+        self._steps = math.ceil(frames_per_batch / self._copies)
+        self._cut = BatchCut()
+        self.collector = Collector(
+            env,
+            policy,
+            frames_per_batch=self._steps * self._copies,
+            total_frames=-1,
+            policy_device=self.device,
+            storing_device=self.device,
+            interruptor=self._cut,
+        )
+        self._batches = iter(self.collector)
+
+    def collect(self, at_most: int | None = None) -> TensorDictBase:
+        """The collector's next batch, ``[env copies, steps]``, cut short (whole steps of the
+        copies) to hold at most ``at_most`` frames and to end at ``frame_limit``: a run's
+        ``total_frames`` is exact when it is a multiple of the env's copies."""
+        caps = [at_most, None if self.frame_limit is None else self.frame_limit - self.frames]
+        frames = min((cap for cap in caps if cap is not None), default=None)
+        steps = self._steps if frames is None else max(math.ceil(frames / self._copies), 1)
+        self._cut.steps = steps if steps < self._steps else None
+        return next(self._batches)[..., :steps]
 
     def state_dict(self) -> dict[str, Any]:
         state = {name: _save(getattr(self, name)) for name in self.state_attrs}

@@ -13,12 +13,11 @@ from torchrl.envs import EnvBase
 from torchrl.modules import EGreedyModule, QValueActor
 from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate
 
-from rlpipe.algos.base import LOSS, EnvAlgorithm, Metrics, episode_metrics, make_collector
+from rlpipe.algos.base import LOSS, EnvAlgorithm, Metrics, episode_metrics
 from rlpipe.cadence import Cadence
 from rlpipe.config import AlgoConfig, checked
 from rlpipe.envs import is_discrete, observation_size
 from rlpipe.errors import RlpipeError, check
-from rlpipe.models import mlp
 
 LOSSES = ("smooth_l1", "l2", "l1")
 EPS_SCHEDULES = ("exp", "linear")
@@ -113,14 +112,15 @@ class DQN(EnvAlgorithm):
     stores them in the replay buffer and runs ``cfg.updates_per_batch`` gradient steps, each
     followed by a soft target update (or, with ``cfg.target_update_every``, one update each time
     the frames pass a multiple of it). ε and, with ``cfg.lr_end``, the learning rate follow the
-    frames.
+    frames. ``network`` (or ``cfg.network``) is your Q-network in place of the MLP: observations
+    to one value per action (e.g. the dueling network of ``examples/dueling_dqn.py``).
     """
 
     cfg: DQNConfig
     state_attrs = ("loss", "optimizer", "buffer")
 
     def _build(self, env: EnvBase) -> None:
-        cfg, device = self.cfg, self.device
+        cfg = self.cfg
         if not is_discrete(env):
             raise RlpipeError(
                 f"DQN needs a discrete action space, but this env's actions are "
@@ -128,7 +128,9 @@ class DQN(EnvAlgorithm):
                 "(cartpole, mountaincar, lunarlander) or another algorithm"
             )
         spec = env.action_spec_unbatched.to(self.device)
-        net = mlp(observation_size(env), spec.space.n, cfg.hidden_sizes).to(self.device)
+        n = spec.space.n
+        net = self.network(observation_size(env), n, f"one Q-value per action ({n})")
+        net = net.to(self.device)
         self.policy = QValueActor(net, in_keys=["observation"], spec=spec)
         self.exploration = EGreedyModule(
             spec, eps_init=cfg.eps_start, eps_end=cfg.eps_end, device=self.device
@@ -159,15 +161,14 @@ class DQN(EnvAlgorithm):
             storage=LazyTensorStorage(cfg.buffer_size, device=self.device),
             batch_size=cfg.batch_size,
         )
-        self.collector = make_collector(
-            env, TensorDictSequential(self.policy, self.exploration), cfg.frames_per_batch, device
+        self.make_collector(
+            env, TensorDictSequential(self.policy, self.exploration), cfg.frames_per_batch
         )
-        self._batches = iter(self.collector)
         # On one device the collector steps this very policy; otherwise it holds a copy.
         self._copy_weights = self.device != torch.device(env.device)
 
     def train_step(self) -> Metrics:
-        batch = next(self._batches)
+        batch = self.collect()
         self.frames += batch.numel()
         self.iterations += 1
         self._follow_schedules()

@@ -4,7 +4,7 @@ optionally, a learned state-value baseline whose targets TorchRL's TD(1) estimat
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import torch
@@ -80,8 +80,11 @@ class TensorModule(TensorDictModuleBase):
         return tensordict
 
 
-def make_policy(env: EnvBase, hidden_sizes: list[int]) -> tuple[TensorDictModuleBase, str]:
-    """The stochastic policy and the key holding what its log-probability is taken of.
+def make_policy(
+    env: EnvBase, network: Callable[[int, int, str], nn.Module]
+) -> tuple[TensorDictModuleBase, str]:
+    """The stochastic policy and the key holding what its log-probability is taken of;
+    ``network(in_features, out_features, outputs)`` builds its network.
 
     Discrete actions: a Categorical over logits, sampled into ``action``. Box actions: a
     Gaussian with a mean and a sigmoid std in (0, 1) per dimension, as the notebook's; the raw
@@ -91,7 +94,7 @@ def make_policy(env: EnvBase, hidden_sizes: list[int]) -> tuple[TensorDictModule
     spec = env.action_spec_unbatched
     n_obs = observation_size(env)
     if is_discrete(env):
-        net = mlp(n_obs, num_actions(env), hidden_sizes)
+        net = network(n_obs, num_actions(env), "one logit per action")
         module = TensorModule(net, ["observation"], ["logits"])
         actor = ProbabilisticActor(
             module,
@@ -106,8 +109,9 @@ def make_policy(env: EnvBase, hidden_sizes: list[int]) -> tuple[TensorDictModule
             f"actions, but this env's actions are {type(spec).__name__} of shape "
             f"{tuple(spec.shape)}"
         )
+    outputs = f"a mean and a pre-sigmoid std per action dimension ({spec.shape[0]}), in that order"
     net = nn.Sequential(
-        mlp(n_obs, 2 * spec.shape[0], hidden_sizes), NormalParamExtractor(scale_mapping="sigmoid")
+        network(n_obs, 2 * spec.shape[0], outputs), NormalParamExtractor(scale_mapping="sigmoid")
     )
     module = TensorModule(net, ["observation"], ["loc", "scale"])
     actor = ProbabilisticActor(
@@ -173,6 +177,8 @@ class Reinforce(EnvAlgorithm):
     bootstraps on ``V`` where the time limit cut an episode), then ``cfg.updates_per_epoch`` Adam
     steps on random minibatches of ``cfg.batch_size`` frames minimise ``-log pi(a|s) * weight``
     (plus, with the baseline, ``V``'s squared error to the epoch's TD(1) targets).
+    ``network`` (or ``cfg.network``) is your policy network in place of the MLP: observations to
+    logits, or to a mean and a pre-sigmoid std per continuous action dimension.
     """
 
     cfg: ReinforceConfig
@@ -180,7 +186,7 @@ class Reinforce(EnvAlgorithm):
     def _build(self, env: EnvBase) -> None:
         cfg = self.cfg
         self.budget = cfg.epochs
-        self.policy, self._sample_key = make_policy(env, cfg.hidden_sizes)
+        self.policy, self._sample_key = make_policy(env, self.network)
         self.policy.to(self.device)
         self._actor = self.policy if self._sample_key == "action" else self.policy[0]
         groups = [{"params": list(self.policy.parameters())}]

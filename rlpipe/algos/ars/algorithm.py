@@ -18,7 +18,7 @@ from rlpipe.algos.base import Metrics
 from rlpipe.config import AlgoConfig, checked
 from rlpipe.envs import EnvFactory, is_discrete, num_actions, observation_size
 from rlpipe.errors import RlpipeError
-from rlpipe.models import ArgmaxAction, ClampAction, mlp
+from rlpipe.models import ArgmaxAction, ClampAction, mlp, user_network
 from rlpipe.normalizer import Normalizer
 
 __all__ = ["ARS", "ARSConfig", "RayConfig", "make_ars_policy"]
@@ -67,8 +67,9 @@ class ARSConfig(AlgoConfig):
 
 
 class ARS:
-    """Augmented random search on envs built by ``env_factory`` (a :data:`rlpipe.envs.EnvFactory`
-    over :func:`rlpipe.make_env`).
+    """Augmented random search (ARS V2) as the runner's algorithm, on envs from ``env_factory``.
+
+    ``env_factory`` is a :data:`rlpipe.envs.EnvFactory` over :func:`rlpipe.make_env`.
 
     One env copy is built for the specs and closed; the ``2N`` perturbed policies roll out on
     copies that ``env_factory(num_envs=n, seed=s, vectorization="sync")`` builds, spread over
@@ -76,21 +77,32 @@ class ARS:
     with the first :meth:`train_step`. One :meth:`train_step` is one ARS iteration; ``frames``
     counts every step of every perturbed rollout. ARS runs on the CPU whatever ``device`` says:
     its per-step work is one small batched matmul, next to the env's physics.
+
+    ``network`` (or ``cfg.network``) is your policy network in place of the linear map or MLP:
+    normalised observations to one output per action (discrete: the argmax is taken) or per
+    action dimension (continuous: clamped into the bounds); ARS searches its parameters (e.g. the
+    LayerNorm MLP of ``examples/ars_layernorm.py``).
     """
 
     finite_keys = ()  # the runner checks the policy's parameters
     divergence_hint = "try a smaller algo.step_size or algo.noise"  # the end of its error
 
     def __init__(
-        self, env_factory: EnvFactory, cfg: ARSConfig, *, device: str | torch.device = "cpu"
+        self,
+        env_factory: EnvFactory,
+        cfg: ARSConfig,
+        *,
+        device: str | torch.device = "cpu",
+        network: nn.Module | None = None,
     ):
         self.cfg = cfg
         self.device = torch.device("cpu")
         self.frames = 0
         self.budget = cfg.iterations
+        self.env_factory = env_factory
         probe = env_factory(num_envs=1, vectorization="sync")
         try:
-            self.policy, normalizer = make_ars_policy(probe, cfg)
+            self.policy, normalizer = make_ars_policy(probe, cfg, network)
         finally:
             probe.close()
         seed = int(torch.randint(0, 2**31 - 1, ()))  # from the run's seeded torch generator
@@ -130,8 +142,11 @@ class ARS:
         self.search.close()
 
 
-def make_ars_policy(env: EnvBase, cfg: ARSConfig) -> tuple[TensorDictSequential, Normalizer]:
-    """Normaliser -> linear map (zero-initialised, as the notebook) or MLP -> action head."""
+def make_ars_policy(
+    env: EnvBase, cfg: ARSConfig, network: nn.Module | None = None
+) -> tuple[TensorDictSequential, Normalizer]:
+    """Normaliser -> ``network`` (or ``cfg.network``; by default a linear map, zero-initialised
+    as the notebook's, or an MLP) -> action head."""
     size = observation_size(env)
     spec = env.action_spec_unbatched
     if is_discrete(env) and isinstance(spec, Categorical):
@@ -143,10 +158,14 @@ def make_ars_policy(env: EnvBase, cfg: ARSConfig) -> tuple[TensorDictSequential,
             f"ARS needs a discrete (Discrete) or a flat bounded continuous (Box) action space; "
             f"this env's actions are {type(spec).__name__} of shape {tuple(spec.shape)}"
         )
-    if cfg.policy == "linear":
+    what = "one value per action dimension (clamped into the bounds)"
+    if isinstance(head, ArgmaxAction):
+        what = "one value per action (the argmax is taken)"
+    net = user_network(network, cfg.network, in_features=size, out_features=outputs, outputs=what)
+    if net is None and cfg.policy == "linear":
         net = nn.Linear(size, outputs, bias=False)
         nn.init.zeros_(net.weight)
-    else:
+    elif net is None:
         net = mlp(size, outputs, cfg.hidden_sizes)
     normalizer = Normalizer(size)  # the identity until statistics are merged in
     policy = TensorDictSequential(

@@ -3,6 +3,7 @@ update rule."""
 
 from __future__ import annotations
 
+import copy
 import time
 from functools import partial
 from typing import Any
@@ -24,30 +25,80 @@ SEARCH_PARAMS = ("num_directions", "num_best", "step_size", "noise", "workers", 
 
 
 class ARSSearch:
-    """Augmented random search on ``policy``'s parameters, one :meth:`step` per iteration.
+    """Augmented random search on ``policy``'s flat parameters θ, one :meth:`step` per iteration.
 
-    ``env_factory(num_envs=n, seed=s)`` builds the rollout envs (a TorchRL env over a gymnasium
-    ``SyncVectorEnv``, such as ``functools.partial(rlpipe.make_env, env_cfg)``). ``policy`` maps
-    ``"observation"`` to ``"action"``; a ``normalizer`` inside it is updated from the
-    observations of every iteration's rollouts.
+    Each iteration samples ``num_directions`` (N) Gaussian directions δ, rolls out the ``2N``
+    policies θ ± ν·δ (ν: ``noise``) for one episode each, keeps the ``num_best`` (b) directions
+    with the best ``max(r+, r-)`` and moves θ by ``α / (b·σ) · Σ (r+ - r-)·δ`` (α:
+    ``step_size``, σ: the std of the ``2b`` kept returns; :func:`ars_update`). θ is
+    ``parameters_to_vector(policy.parameters())``, read and set through :attr:`theta`.
 
-    Where the ``2N`` rollouts run is the ``backend``'s business; the update is the same:
+    Args:
+        policy: a CPU ``TensorDictModule``, or a ``TensorDictSequential`` of them with one
+            output key each, mapping ``"observation"`` to ``"action"`` (what the gymnasium env's
+            ``step`` takes). Every parameter is searched; buffers (a :class:`Normalizer`'s
+            statistics) are not. The search changes this object's parameters in place.
+        env_factory: ``env_factory(num_envs=n, seed=s)`` builds ``n`` rollout env copies: a
+            TorchRL env over a gymnasium ``SyncVectorEnv``, such as
+            ``functools.partial(rlpipe.make_env, env_cfg, vectorization="sync")``.
+        num_directions: N, directions sampled per iteration (``2N`` rollouts). Default 16.
+        num_best: b, directions kept for the update, between 1 and N. Default None: N.
+        step_size: α, the update's step size (> 0). Default 0.02.
+        noise: ν, the perturbations' scale (> 0). Default 0.03.
+        max_steps: a rollout's episode ends after this many steps (at least 1), or earlier at
+            the env's own time limit or termination. Default 1000.
+        reward_offset: added to every reward of the training returns that rank and weigh the
+            directions (the ARS paper's alive-bonus offset; the RL Zoo uses -0.1 on
+            BipedalWalker). Default 0.0.
+        reward_clip: training rewards (after the offset) are clipped to
+            ``[-reward_clip, reward_clip]``; None: not clipped (the default). The offset and
+            the clip shape only the update: :meth:`step` reports the env's own returns.
+        normalizer: the :class:`Normalizer` inside ``policy`` whose statistics the search
+            updates after every iteration (below). Default None: no statistics are kept.
+        workers: ``"local"``: processes rolling out the members in chunks (1, the default: all
+            in this process, as one batch; 0: one per CPU core); ``"ray"``: Ray actors (0: one
+            per CPU of the cluster). Never more than ``2N``. With 2 or more local workers keep
+            scripts' ``if __name__ == "__main__":`` guard (workers may be spawned).
+        backend: ``"local"`` (the default) or ``"ray"`` (the ``ray`` extra).
+        ray_address: ``backend="ray"`` only: None (the default) starts Ray on this machine,
+            ``host:port``, ``ray://host:port`` or ``"auto"`` joins that cluster. A Ray already
+            initialised in this process is used as it is.
+        ray_num_cpus: ``backend="ray"`` only: CPUs of a Ray started here (None: all).
+        seed: seeds the search's generator, which draws the directions and each direction's
+            episode seed, and the env copies (worker ``w`` builds its copies with ``seed + w``).
+            Default 0.
 
-    - ``"local"``: ``workers`` processes on this machine share the members in chunks
-      (1: everything in this process, as one batch; 0: one process per core);
-    - ``"ray"``: ``workers`` Ray actors (0: one per CPU of the cluster), on a Ray started here
-      with ``ray_num_cpus`` CPUs (all when None) or on the cluster at ``ray_address``
-      (``host:port``, ``ray://host:port`` or ``auto``).
+    A bad ``num_directions``, ``num_best``, ``step_size``, ``noise``, ``max_steps``,
+    ``workers`` or ``backend`` raises :class:`rlpipe.RlpipeError` naming it. The backend (env
+    copies, worker processes or actors) starts with the first :meth:`step`, or :meth:`start`:
+    a search built only to hold its policy, or to load a state, starts nothing. :meth:`close`
+    stops it.
 
-    The backend (env copies, worker processes or actors) starts with the first :meth:`step`, or
-    :meth:`start`: a search built only to hold its policy, or to load a state, starts nothing.
+    The normaliser (ARS V2) goes in two places, as one and the same object: as a module inside
+    ``policy``, ahead of the layers that read its output (so that every rollout standardises
+    observations with its statistics, frozen during an iteration: worker processes and actors
+    get them with each iteration's first chunk), and as ``normalizer=`` (so that after every
+    iteration the search merges in the statistics of all the observations the ``2N`` perturbed
+    policies acted on: their count, mean and squared deviations). The rollouts of iteration
+    ``k`` use the statistics of iterations ``1 .. k-1``. Inside the policy only, it stays what
+    it was built as (a new one: the identity), as if there were no normaliser. As
+    ``normalizer=`` only, its statistics grow but no rollout ever uses them, and
+    :meth:`state_dict` (the policy's state) does not hold them. ``make_ars_policy`` in
+    :mod:`rlpipe.algos.ars` builds such a pair for any env.
+
+    :meth:`state_dict` and :meth:`load_state_dict` checkpoint and resume exactly: a fresh
+    search, built with the same arguments and loaded with a saved state, continues with the
+    same directions, episodes, returns, θ and statistics as the search that was saved (for
+    envs whose ``reset(seed=...)`` fixes the episode; see below). The state is a copy: the
+    search going on does not change it, so ``torch.save`` it or keep it in memory.
 
     Each direction's episode seed comes from the search's generator, shared by θ+νδ and θ-νδ
     (both start from the same state, so r+ - r- measures the direction, not two starts' luck),
     so for the same ``seed`` every backend and worker count gives the same rollouts and the
-    same θ, for envs whose
-    ``reset(seed=...)`` fixes the episode (Box2D envs keep their world across resets, so there
-    an episode also depends on what its env copy ran before).
+    same θ, for envs whose ``reset(seed=...)`` fixes the episode. Box2D envs (BipedalWalker,
+    LunarLander) keep their world across resets, so there an episode also depends on what its
+    env copy ran before: worker counts, and a resumed search's fresh env copies, change the
+    episodes.
     """
 
     def __init__(
@@ -110,8 +161,15 @@ class ARSSearch:
     def step(self) -> dict[str, float | list[float]]:
         """One iteration: roll out θ ± ν·δ for N fresh directions, update θ and the normaliser.
 
-        Returns the env's (unshaped) returns of the ``2N`` rollouts, their mean and max, the
-        env steps taken, steps/s and the CPU seconds the rollouts took over all processes.
+        Returns the iteration's figures (returns are the env's own, without ``reward_offset``
+        or ``reward_clip``):
+
+        - ``"return_mean"``, ``"return_max"``: mean and max return of the ``2N`` rollouts;
+        - ``"env_steps"``: env steps taken by the ``2N`` rollouts (a float);
+        - ``"steps_per_second"``: ``env_steps`` over this call's wall-clock seconds;
+        - ``"rollout_cpu_seconds"``: CPU seconds of the rollouts, summed over all processes;
+        - ``"episode_return"``, ``"episode_length"``: lists of ``2N`` floats, one per rollout:
+          θ+νδ for the N directions, then θ-νδ in the same order.
         """
         self.start()
         start = time.perf_counter()
@@ -147,14 +205,18 @@ class ARSSearch:
         }
 
     def state_dict(self) -> dict[str, Any]:
-        """θ and the normaliser (the policy's state dict), iterations and the generator."""
+        """A copy of what resumes the search: ``"policy"`` (the policy's state dict: θ, and the
+        normaliser inside the policy), ``"iterations"`` and ``"generator"`` (its state)."""
         return {
-            "policy": self.policy.state_dict(),
+            # a copy: the normaliser's buffers change in place with every step
+            "policy": copy.deepcopy(self.policy.state_dict()),
             "iterations": self.iterations,
             "generator": self.generator.get_state(),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore a :meth:`state_dict` (θ, normaliser, iterations, generator) into this search;
+        the next :meth:`step` is the one that followed the saved state."""
         self.policy.load_state_dict(state["policy"])
         self.iterations = int(state["iterations"])
         self.generator.set_state(state["generator"])

@@ -14,11 +14,12 @@ from torchrl.data import Bounded, LazyTensorStorage, ReplayBuffer
 from torchrl.envs import EnvBase, ExplorationType
 from torchrl.envs.utils import exploration_type
 
-from rlpipe.algos.base import EnvAlgorithm, Metrics, episode_metrics, make_collector
+from rlpipe.algos.base import EnvAlgorithm, Metrics, episode_metrics
 from rlpipe.algos.mbrl.planning import ActionCoder, Planner, WorldModel
 from rlpipe.config import AlgoConfig, checked
 from rlpipe.envs import is_discrete, num_actions, observation_size
 from rlpipe.errors import RlpipeError, check
+from rlpipe.models import instantiate
 
 PLANNERS = ("cem", "random")
 MODEL_LOSS = "train/model_loss"  # the models' mean training loss over a fit
@@ -147,6 +148,9 @@ class MBRL(EnvAlgorithm):
     sub-batch (skipping the fit) or Adam step, and a checkpoint taken then is a valid resume
     point. The next ``train_step`` completes the interrupted iteration (collects up to the next
     multiple of the iteration's frames), so fits come at the same frame counts as without a stop.
+
+    ``network`` (or ``cfg.network``) is your world model in place of the default: see
+    :meth:`world_model`.
     """
 
     cfg: MBRLConfig
@@ -154,11 +158,9 @@ class MBRL(EnvAlgorithm):
     state_attrs = ("model", "optimizer", "buffer", "fit_generator", "plan_generator")
 
     def _build(self, env: EnvBase) -> None:
-        cfg, device = self.cfg, self.device
+        cfg = self.cfg
         coder = action_coder(env, self.device)
-        self.model = WorldModel(
-            observation_size(env), coder.size, cfg.hidden_sizes, cfg.ensemble_size
-        ).to(self.device)
+        self.model = self.world_model(observation_size(env), coder.size).to(self.device)
         planner = Planner(
             self.model,
             coder,
@@ -188,8 +190,33 @@ class MBRL(EnvAlgorithm):
         steps = math.ceil(cfg.frames_per_batch / num_envs)  # per iteration
         self.iteration_frames = steps * num_envs
         sub_batch = _sub_batch_steps(steps) * num_envs
-        self.collector = make_collector(env, self.policy, sub_batch, device)
-        self._batches = iter(self.collector)
+        self.make_collector(env, self.policy, sub_batch)
+
+    def world_model(self, obs_size: int, action_size: int) -> WorldModel:
+        """``network`` (a :class:`WorldModel`, e.g. a subclass with other networks), or one
+        ``cfg.network`` builds (called with ``obs_size``, ``action_size``, ``hidden_sizes`` and
+        ``members`` unless it sets them), else the default :class:`WorldModel`."""
+        sizes = dict(
+            obs_size=obs_size,
+            action_size=action_size,
+            hidden_sizes=self.cfg.hidden_sizes,
+            members=self.cfg.ensemble_size,
+        )
+        check(
+            self._network is None or not self.cfg.network,
+            "a network was given both as an object and as algo.network; give one of them",
+        )
+        model = self._network
+        if model is None and self.cfg.network:
+            model = instantiate(self.cfg.network, "algo.network", **sizes)
+        if model is None:
+            return WorldModel(**sizes)
+        check(
+            isinstance(model, WorldModel),
+            f"MBRL's network is its world model: a rlpipe.algos.mbrl.WorldModel (or a subclass), "
+            f"got {type(model).__name__}",
+        )
+        return model
 
     def train_step(self) -> Metrics:
         """Collect the rest of the iteration's frames sub-batch by sub-batch, then fit; return
@@ -199,7 +226,7 @@ class MBRL(EnvAlgorithm):
         collected = 0
         metrics: Metrics = {}
         while collected < target and not self.should_stop():
-            batch = next(self._batches)
+            batch = self.collect(target - collected)
             self._store(batch)
             collected += batch.numel()
             for key, values in episode_metrics(batch).items():
