@@ -8,6 +8,8 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 import torch
+from tensordict import NestedKey, TensorDictBase
+from tensordict.nn import TensorDictModuleBase
 from torch import nn
 from torchrl.modules import MLP
 
@@ -22,6 +24,29 @@ def mlp(in_features: int, out_features: int, hidden_sizes: Sequence[int]) -> nn.
         num_cells=list(hidden_sizes),
         activation_class=nn.ReLU,
     )
+
+
+class TensorModule(TensorDictModuleBase):
+    """Run ``module`` on the ``in_keys`` tensors and write its outputs to ``out_keys`` in place.
+
+    What ``TensorDictModule`` does for tensor-to-tensor modules, minus its per-output
+    ``TensorDict.from_any``, which in tensordict 0.14.3 looks ``pandas`` up with
+    ``importlib.util.find_spec`` on every call, a cost paid per env step and per minibatch.
+    """
+
+    def __init__(
+        self, module: nn.Module, in_keys: Sequence[NestedKey], out_keys: Sequence[NestedKey]
+    ) -> None:
+        super().__init__()
+        self.module = module
+        self.in_keys, self.out_keys = list(in_keys), list(out_keys)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        out = self.module(*(tensordict.get(key) for key in self.in_keys))
+        outs = out if isinstance(out, tuple) else (out,)
+        for key, value in zip(self.out_keys, outs, strict=True):
+            tensordict.set(key, value)
+        return tensordict
 
 
 def instantiate(spec: Mapping[str, Any], what: str, **sizes: int) -> Any:

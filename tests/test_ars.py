@@ -115,16 +115,39 @@ def test_population_call_equals_one_call_per_member(env_id, policy):
         assert out["action"].abs().max() <= 2.0  # clipped to the bounds
 
 
-def test_population_call_of_other_layers_goes_through_torch():
-    # LayerNorm has parameters (vmap over functional_call), Softsign has no NumPy form
-    net = nn.Sequential(nn.Linear(3, 8), nn.LayerNorm(8), nn.Softsign(), nn.Tanh(), nn.Linear(8, 1))
+class _Custom(nn.Module):
+    """A module of its own (no NumPy form): population calls go through torch.vmap."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.layer = nn.Linear(3, 1)
+
+    def forward(self, x):
+        return torch.sin(self.layer(x))
+
+
+@pytest.mark.parametrize(
+    ("net", "numpy_only"),
+    [
+        (nn.Sequential(nn.Linear(3, 8), nn.LayerNorm(8), nn.Tanh(), nn.Linear(8, 1)), True),
+        (nn.Sequential(nn.Linear(3, 8), nn.LayerNorm(8, bias=False), nn.Linear(8, 1)), True),
+        (nn.Sequential(nn.Linear(3, 8), nn.Softsign(), nn.Linear(8, 1)), False),  # no NumPy twin
+        (_Custom(), False),
+    ],
+    ids=["layernorm", "layernorm-no-bias", "softsign", "custom"],
+)
+def test_population_call_of_any_layer_equals_the_torch_forward(net, numpy_only):
     policy = TensorDictModule(net, in_keys=["observation"], out_keys=["action"])
     flat = torch.randn(5, parameters_to_vector(net.parameters()).numel())
     obs = torch.randn(5, 3)
-    out = PopulationPolicy(policy, flat)(TensorDict(observation=obs, batch_size=[5]))
+    population = PopulationPolicy(policy, flat)
+    out = population(TensorDict(observation=obs, batch_size=[5]))
     for i in range(5):
         vector_to_parameters(flat[i], net.parameters())
         assert torch.allclose(net(obs[i]), out["action"][i], atol=1e-5)
+    assert population.numpy_only is numpy_only
+    # workers pull small chunks of a NumPy policy, one chunk each of a policy run through torch
+    assert backends.chunks_per_worker(policy) == (backends.CHUNKS_PER_WORKER if numpy_only else 1)
 
 
 def test_search_standalone_solves_cartpole_and_tracks_observations():

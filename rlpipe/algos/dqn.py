@@ -18,6 +18,7 @@ from rlpipe.cadence import Cadence
 from rlpipe.config import AlgoConfig, checked
 from rlpipe.envs import is_discrete, observation_size
 from rlpipe.errors import RlpipeError, check
+from rlpipe.models import TensorModule
 
 LOSSES = ("smooth_l1", "l2", "l1")
 EPS_SCHEDULES = ("exp", "linear")
@@ -131,7 +132,8 @@ class DQN(EnvAlgorithm):
         n = spec.space.n
         net = self.network(observation_size(env), n, f"one Q-value per action ({n})")
         net = net.to(self.device)
-        self.policy = QValueActor(net, in_keys=["observation"], spec=spec)
+        # TensorModule: a TensorDictModule without its per-call lookup (see its docstring)
+        self.policy = QValueActor(TensorModule(net, ["observation"], ["action_value"]), spec=spec)
         self.exploration = EGreedyModule(
             spec, eps_init=cfg.eps_start, eps_end=cfg.eps_end, device=self.device
         )

@@ -4,11 +4,11 @@ optionally, a learned state-value baseline whose targets TorchRL's TD(1) estimat
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
-from tensordict import NestedKey, TensorDictBase
+from tensordict import TensorDictBase
 from tensordict.nn import (
     NormalParamExtractor,
     TensorDictModuleBase,
@@ -27,7 +27,7 @@ from rlpipe.config import AlgoConfig, checked
 from rlpipe.envs import is_discrete, num_actions, observation_size
 from rlpipe.episodes import episode_quotas
 from rlpipe.errors import RlpipeError
-from rlpipe.models import ClampAction, mlp
+from rlpipe.models import ClampAction, TensorModule, mlp
 
 add_custom_mapping("sigmoid", torch.sigmoid)  # the notebook's std in (0, 1)
 _EPS = torch.finfo(torch.float32).eps
@@ -55,29 +55,6 @@ class ReinforceConfig(AlgoConfig):
     baseline: str = checked("none", choices=BASELINES)
     value_hidden_sizes: list[int] = checked([64], "sizes")  # V(s)'s network
     value_lr: float = checked(1e-2, "positive")  # V(s)'s Adam learning rate (same weight decay)
-
-
-class TensorModule(TensorDictModuleBase):
-    """Run ``module`` on the ``in_keys`` tensors and write its outputs to ``out_keys`` in place.
-
-    What ``TensorDictModule`` does for tensor-to-tensor modules, minus its per-output
-    ``TensorDict.from_any``, which in tensordict 0.14.3 looks ``pandas`` up with
-    ``importlib.util.find_spec`` on every call, a cost paid per env step and per minibatch.
-    """
-
-    def __init__(
-        self, module: nn.Module, in_keys: Sequence[NestedKey], out_keys: Sequence[NestedKey]
-    ) -> None:
-        super().__init__()
-        self.module = module
-        self.in_keys, self.out_keys = list(in_keys), list(out_keys)
-
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        out = self.module(*(tensordict.get(key) for key in self.in_keys))
-        outs = out if isinstance(out, tuple) else (out,)
-        for key, value in zip(self.out_keys, outs, strict=True):
-            tensordict.set(key, value)
-        return tensordict
 
 
 def make_policy(

@@ -23,7 +23,9 @@ from typing import Any, Protocol
 import cloudpickle
 import torch
 from tensordict.nn import TensorDictModuleBase
+from torch.nn.utils import parameters_to_vector
 
+from rlpipe.algos.ars.population import PopulationPolicy
 from rlpipe.algos.ars.rollout import RolloutResult, Rollouts
 from rlpipe.envs import EnvFactory
 from rlpipe.errors import RlpipeError
@@ -89,6 +91,16 @@ class _Units:
         return self.policy, self.env_factory, num_envs, self.seed + worker, self.options
 
 
+def chunks_per_worker(policy: TensorDictModuleBase) -> int:
+    """How many chunks each worker takes per iteration: :data:`CHUNKS_PER_WORKER` (small chunks
+    balance heavy-tailed episode lengths) when the policy runs as NumPy; one otherwise, since a
+    call through torch (``torch.vmap`` over a module without a NumPy form) costs about as much
+    for one member as for all: one chunk per worker makes no more calls per step than one
+    process does, on half the members."""
+    flat = parameters_to_vector(policy.parameters()).detach()[None]
+    return CHUNKS_PER_WORKER if PopulationPolicy(policy, flat).numpy_only else 1
+
+
 class _InProcess:
     """The rollout backend that steps the whole population as one batch in this process."""
 
@@ -106,7 +118,8 @@ class _Pool:
     """A rollout backend of workers that pull chunks of the population as they free up.
 
     Episode lengths are heavy-tailed, so each worker takes small chunks (about eight per worker
-    and iteration) rather than owning a fixed share; one worker takes everything as one chunk.
+    and iteration, one for policies that run through torch: :func:`chunks_per_worker`) rather than
+    owning a fixed share; one worker takes everything as one chunk.
     A chunk carries its members' parameters and episode seeds, and the policy's state (the
     normaliser changes every iteration) when it is the worker's first of the iteration, all as
     NumPy arrays; only its :class:`RolloutResult` comes back. Subclasses fill
@@ -117,7 +130,9 @@ class _Pool:
     def __init__(self, units: _Units, population: int, workers: int) -> None:
         self.policy = units.policy
         self.chunk_size = (
-            -(-population // (CHUNKS_PER_WORKER * workers)) if workers > 1 else population
+            -(-population // (chunks_per_worker(units.policy) * workers))
+            if workers > 1
+            else population
         )
         self.chunks = list(torch.arange(population).split(self.chunk_size))
         self.workers: list[Any] = []

@@ -1,0 +1,158 @@
+"""ARS rollout workers against one process, for any policy: seconds per iteration.
+
+For each policy network (the notebook's linear map, which runs as NumPy; an MLP with LayerNorm,
+NumPy since LayerNorm has a NumPy form; a custom ``nn.Module``, which runs through
+``torch.vmap`` every step) and env, ``ARSSearch`` runs ``--iterations`` iterations with
+``workers=1`` and with ``workers=2``, and, for reference, with ``workers=2`` and the chunking
+every policy had before (eight chunks per worker). Rounds are interleaved and each cell is the
+median over ``--repeats`` rounds; worker start-up is excluded. Ratio: seconds with 2 workers ÷
+seconds with 1 (below 1: the workers are faster).
+
+    python benchmarks/ars_workers.py --iterations 5 --repeats 3 --append BENCHMARKS.md
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from functools import partial
+from statistics import median
+
+import torch
+from common import machine, parser, publish, table
+from torch import nn
+
+from rlpipe import ARSConfig, ARSSearch, EnvConfig, make_env
+from rlpipe.algos.ars import backends, make_ars_policy
+
+
+class LayerNormMLP(nn.Module):
+    """Linear -> LayerNorm -> tanh -> linear (examples/ars_layernorm.py's network)."""
+
+    def __init__(self, in_features: int, out_features: int) -> None:
+        super().__init__()
+        self.net = nn.Sequential(
+            nn.Linear(in_features, 16), nn.LayerNorm(16), nn.Tanh(), nn.Linear(16, out_features)
+        )
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.net(x)
+
+
+class Custom(nn.Module):
+    """A network with its own forward (no NumPy form): a gated linear map."""
+
+    def __init__(self, in_features: int, out_features: int) -> None:
+        super().__init__()
+        self.linear = nn.Linear(in_features, out_features)
+        self.gate = nn.Linear(in_features, out_features)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.linear(x) * torch.sigmoid(self.gate(x))
+
+
+NETWORKS: dict[str, Callable[[int, int], nn.Module] | None] = {
+    "linear (NumPy)": None,
+    "Sequential with LayerNorm (NumPy)": lambda n_in, n_out: LayerNormMLP(n_in, n_out).net,
+    "custom nn.Module (torch.vmap)": Custom,
+}
+SETUPS = {
+    "1 worker": (1, None),
+    "2 workers": (2, None),
+    "2 workers, 8 chunks each (before)": (2, 8),
+}
+
+
+def seconds_per_iteration(
+    env_id: str, network: str, workers: int, chunks: int | None, args
+) -> float:
+    """Median seconds of an ARS iteration (16 directions) after the workers started."""
+    env_cfg = EnvConfig(id=env_id)
+    probe = make_env(env_cfg)
+    size, outputs = probe.observation_spec["observation"].shape[-1], None
+    spec = probe.action_spec_unbatched
+    outputs = spec.space.n if hasattr(spec.space, "n") else spec.shape[0]
+    probe.close()
+    build = NETWORKS[network]
+    torch.manual_seed(0)
+    policy, normalizer = make_ars_policy(
+        make_env(env_cfg), ARSConfig(), None if build is None else build(size, outputs)
+    )
+    saved = backends.chunks_per_worker
+    if chunks is not None:  # the chunking of every policy before: small chunks whatever the cost
+        backends.chunks_per_worker = lambda _policy: chunks
+    try:
+        search = ARSSearch(
+            policy,
+            partial(make_env, env_cfg, vectorization="sync"),
+            num_directions=16,
+            max_steps=args.max_steps,
+            normalizer=normalizer,
+            workers=workers,
+        )
+        search.start()
+        times = []
+        for _ in range(args.iterations):
+            start = time.perf_counter()
+            search.step()
+            times.append(time.perf_counter() - start)
+        search.close()
+    finally:
+        backends.chunks_per_worker = saved
+    return median(times)
+
+
+def main() -> None:
+    p = parser(__doc__.splitlines()[0])
+    p.add_argument("--envs", nargs="+", default=["Pendulum-v1", "CartPole-v1"])
+    p.add_argument("--iterations", type=int, default=5)
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--max-steps", type=int, default=1000)
+    args = p.parse_args()
+    cells: dict[tuple[str, str, str], list[float]] = {}
+    for _ in range(args.repeats):  # interleaved: a burst of load moves one round, not a column
+        for env_id in args.envs:
+            for network in NETWORKS:
+                for setup, (workers, chunks) in SETUPS.items():
+                    key = (env_id, network, setup)
+                    seconds = seconds_per_iteration(env_id, network, workers, chunks, args)
+                    cells.setdefault(key, []).append(seconds)
+    rows = []
+    for env_id in args.envs:
+        for network in NETWORKS:
+            one, two, before = (median(cells[env_id, network, s]) for s in SETUPS)
+            rows.append(
+                [
+                    env_id,
+                    network,
+                    f"{one:.3f}",
+                    f"{two:.3f}",
+                    f"{before:.3f}",
+                    f"{two / one:.2f}×",
+                    f"{before / one:.2f}×",
+                ]
+            )
+    report = "\n\n".join(
+        [
+            f"### ARS workers vs one process, by policy ({args.iterations} iterations, median of "
+            f"{args.repeats} interleaved rounds)",
+            machine(["torch", "torchrl", "gymnasium"]),
+            table(
+                [
+                    "env",
+                    "policy network",
+                    "s/iter, 1 worker",
+                    "s/iter, 2 workers",
+                    "s/iter, 2 workers, 8 chunks each (before)",
+                    "2 ÷ 1",
+                    "before ÷ 1",
+                ],
+                rows,
+            ),
+        ]
+    )
+    publish(report, args.append)
+
+
+if __name__ == "__main__":
+    main()
