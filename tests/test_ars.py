@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import math
 import multiprocessing
 import os
 import pickle
@@ -188,8 +189,15 @@ def small_search(seed: int, **kwargs) -> ARSSearch:
     )
 
 
-def test_worker_processes_give_the_same_search_as_one_process():
-    """Each member's episode seed comes from the search, whichever process rolls it out."""
+@pytest.mark.parametrize(
+    ("small_work", "here"),
+    [(0.0, False), (math.inf, True)],
+    ids=["workers-every-iteration", "this-process-once-work-is-small"],
+)
+def test_worker_processes_give_the_same_search_as_one_process(monkeypatch, small_work, here):
+    """Each member's episode seed comes from the search, whichever process rolls it out: the
+    workers, or this process after an iteration of small work."""
+    monkeypatch.setattr(backends, "SMALL_WORK_SECONDS", small_work)
     thetas, counts = [], []
     for workers in (1, 2):
         search = small_search(seed=5, workers=workers)
@@ -197,6 +205,8 @@ def test_worker_processes_give_the_same_search_as_one_process():
             before = search.theta
             # several iterations: a worker gets the policy state with its first chunk of each
             steps = [search.step()["env_steps"] for _ in range(3)]
+            if workers == 2:  # the first iteration in the workers, then as the case says
+                assert (search._backend._here is not None) is here
         finally:
             search.close()
         assert not torch.equal(before, search.theta)
@@ -465,9 +475,10 @@ def test_workers_exit_when_the_main_process_is_killed(variant):
     assert not left, f"workers {left} outlived the killed main process"
 
 
-def test_a_killed_worker_stops_training_with_one_line():
+def test_a_killed_worker_stops_training_with_one_line(monkeypatch):
     """A worker killed mid-training (OOM killer, kill -9) raises one RlpipeError line in the
     main process within seconds; close() then neither raises nor hangs."""
+    monkeypatch.setattr(backends, "SMALL_WORK_SECONDS", 0.0)  # every iteration in the workers
     before = set(multiprocessing.active_children())
     cfg = ARSConfig(num_directions=4, num_best=4, episode_length=200, workers=2)
     algo = ARS(partial(make_env, PENDULUM, seed=0), cfg)

@@ -34,6 +34,9 @@ __all__ = ["BACKENDS", "RAY_INSTALL", "Backend", "Shares", "WorkerDied", "start_
 
 BACKENDS = ("local", "ray")
 CHUNKS_PER_WORKER = 8
+# an iteration's rollout CPU seconds below which this process rolls out the next one alone: the
+# round trips to the workers would cost more than they save
+SMALL_WORK_SECONDS = 0.02
 RAY_INSTALL = 'pip install "rlpipe[ray]"'
 
 # what a backend's roll_out returns: (member indices, their result) pairs covering the population
@@ -206,10 +209,18 @@ class _Processes(_Pool):
     started the pool ends, so start and use a pool in a thread that outlives it). A worker that
     dies raises :class:`WorkerDied` in the parent, which never waits on a dead worker; the other
     workers are stopped at once and the pool cannot be used again.
+
+    An iteration whose rollouts took less than :data:`SMALL_WORK_SECONDS` of CPU (short episodes,
+    e.g. early CartPole) is followed by one rolled out in this process, on env copies of its own
+    built at the first such iteration, until the work grows again: so workers are never slower
+    than one process by their round trips.
     """
 
     def __init__(self, units: _Units, population: int, workers: int) -> None:
         super().__init__(units, population, workers)
+        self._units, self._population = units, population
+        self._here: _InProcess | None = None  # this process's own copies, once work is small
+        self._work = float("inf")  # the last iteration's rollout CPU seconds
         method = _start_method()
         ctx = mp.get_context(method)
         self._procs: dict[Connection, Any] = {}  # parent end -> its worker process
@@ -243,7 +254,15 @@ class _Processes(_Pool):
     def roll_out(self, flat: torch.Tensor, seeds: torch.Tensor) -> Shares:
         if self._failure is not None:
             raise self._failure
-        return super().roll_out(flat, seeds)
+        if self._work < SMALL_WORK_SECONDS:
+            if self._here is None:
+                args = self._units.args(len(self.workers), self._population)
+                self._here = _InProcess(Rollouts(*args), self._population)
+            shares = self._here.roll_out(flat, seeds)
+        else:
+            shares = super().roll_out(flat, seeds)
+        self._work = sum(result.cpu_seconds for _, result in shares)
+        return shares
 
     def _submit(self, worker: Any, *message: Any) -> Any:
         try:
@@ -283,6 +302,8 @@ class _Processes(_Pool):
         return self._failure
 
     def close(self) -> None:
+        if self._here is not None:
+            self._here.close()
         self._stop(grace=CLOSE_SECONDS)
 
     def _stop(self, grace: float) -> None:
