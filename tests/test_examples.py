@@ -53,22 +53,31 @@ def test_dueling_network_from_python_trains_and_loads_back(examples, tmp_path):
     run.algo.close()
 
 
-def test_dueling_network_from_the_command_line(tmp_path):
-    run_dir = tmp_path / "run"
+def trained(run_dir: Path, *overrides: str) -> dict:
+    """``python -m rlpipe <overrides>`` into ``run_dir`` with ``examples/`` importable; the
+    ``config.yaml`` it wrote."""
     done = run_module(
         "rlpipe",
-        "+experiment=dqn_cartpole",
-        "total_frames=2048",
-        "eval_every=1024",
+        *overrides,
         *TINY,
-        "algo.network._target_=dueling_dqn.DuelingQNet",
-        "algo.network.hidden=16",
         f"hydra.run.dir={run_dir}",
-        cwd=tmp_path,
+        cwd=run_dir.parent,
         pythonpath=EXAMPLES,
     )
     assert done.returncode == 0, done.stderr
-    stored = yaml.safe_load((run_dir / "config.yaml").read_text())
+    return yaml.safe_load((run_dir / "config.yaml").read_text())
+
+
+def test_dueling_network_from_the_command_line(tmp_path):
+    run_dir = tmp_path / "run"
+    stored = trained(
+        run_dir,
+        "+experiment=dqn_cartpole",
+        "total_frames=2048",
+        "eval_every=1024",
+        "algo.network._target_=dueling_dqn.DuelingQNet",
+        "algo.network.hidden=16",
+    )
     assert stored["algo"]["network"] == {"_target_": "dueling_dqn.DuelingQNet", "hidden": 16}
     # the spec imports code: refused until trusted, then rebuilt from config.yaml
     refused = run_module("rlpipe.evaluate", f"run_dir={run_dir}", cwd=tmp_path)
@@ -93,20 +102,14 @@ def test_layernorm_ars_policy_trains_and_evaluates_from_the_cli(examples, tmp_pa
 
 def test_custom_env_module_trains_from_the_cli(tmp_path):
     run_dir = tmp_path / "run"
-    done = run_module(
-        "rlpipe",
+    stored = trained(
+        run_dir,
         "env=gym",
         "env.id=custom_env:GoalLine-v0",
         "env.kwargs.goal=0.5",
         "total_frames=400",
         "eval_every=200",
-        *TINY,
-        f"hydra.run.dir={run_dir}",
-        cwd=tmp_path,
-        pythonpath=EXAMPLES,
     )
-    assert done.returncode == 0, done.stderr
-    stored = yaml.safe_load((run_dir / "config.yaml").read_text())
     assert stored["env"]["id"] == "custom_env:GoalLine-v0"
     assert stored["env"]["kwargs"] == {"goal": 0.5}
     assert "GoalLine-v0: return" in evaluated(run_dir, "allow_env_import=true")
