@@ -78,6 +78,37 @@ def instantiate(spec: Mapping[str, Any], what: str, **sizes: int) -> Any:
         ) from err
 
 
+# algo.network of a run whose network was a Python object: {"_object_": "<its class>"}, a record
+# (config.yaml cannot rebuild the object) that asks for the object again
+OBJECT_KEY = "_object_"
+
+
+def object_record(network: nn.Module) -> dict[str, str]:
+    """What ``algo.network`` records for a network given as a Python object: its class."""
+    return {OBJECT_KEY: f"{type(network).__module__}.{type(network).__qualname__}"}
+
+
+def network_spec(
+    network: nn.Module | None, spec: Mapping[str, Any] | None
+) -> Mapping[str, Any] | None:
+    """The ``algo.network`` spec left to build (None: use ``network``, or the default), after
+    checking ``network`` and ``spec`` do not both name a network, and that a run whose network
+    was an object (:func:`object_record`) gets one."""
+    if spec and OBJECT_KEY in spec:
+        check(
+            network is not None,
+            f"this run's network was a Python object ({spec[OBJECT_KEY]}), which config.yaml "
+            "cannot rebuild: pass one like it as network= (load_run(run_dir, network=...), "
+            "train(cfg, run_dir, network=...))",
+        )
+        return None
+    check(
+        network is None or not spec,
+        "a network was given both as an object and as algo.network; give one of them",
+    )
+    return spec or None
+
+
 def user_network(
     network: nn.Module | None,
     spec: Mapping[str, Any] | None,
@@ -93,11 +124,8 @@ def user_network(
     (unless it sets them). Either way the network must map a batch of ``in_features`` inputs to
     ``out_features`` outputs (``outputs`` says what they are, for the error).
     """
-    check(
-        network is None or not spec,
-        "a network was given both as an object and as algo.network; give one of them",
-    )
-    if network is None and spec:
+    spec = network_spec(network, spec)
+    if spec:
         network = instantiate(
             spec, "algo.network", in_features=in_features, out_features=out_features
         )

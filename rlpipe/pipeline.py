@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import replace
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -18,6 +19,7 @@ from rlpipe.envs import make_env
 from rlpipe.episodes import eval_envs
 from rlpipe.loggers import make_logger
 from rlpipe.metrics import truncate_metrics
+from rlpipe.models import object_record
 from rlpipe.rundir import (
     CONFIG_FILE,
     check_same_run,
@@ -54,6 +56,8 @@ def train(
     ``cfg.algo.network``, a ``_target_`` spec, needs neither).
     """
     cfg = cfg.resolved()
+    if network is not None:  # config.yaml records its class, and asks for it on loading
+        cfg = replace(cfg, algo=replace(cfg.algo, network=object_record(network)))
     device = resolve_device(cfg.device)
     run_dir = Path(cfg.resume or run_dir)
     if cfg.resume or (run_dir / CONFIG_FILE).exists():

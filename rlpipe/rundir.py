@@ -28,6 +28,7 @@ from rlpipe.config import RUN_KEYS, Config, EnvConfig, LoggerConfig, flatten
 from rlpipe.envs import make_env
 from rlpipe.errors import RlpipeError, check
 from rlpipe.files import write_atomic
+from rlpipe.models import object_record
 
 CONFIG_FILE = "config.yaml"
 LOCK_FILE = ".lock"
@@ -86,6 +87,7 @@ def describe_run(algo: Algorithm, **run: Any) -> Config | None:
     the runner's :data:`~rlpipe.config.RUN_KEYS`, ``keep_checkpoints`` and ``progress``.
     """
     cfg, factory = getattr(algo, "cfg", None), getattr(algo, "env_factory", None)
+    network = getattr(algo, "_network", None)  # given as an object: recorded by its class
     known = cfg is not None and ALGORITHMS.get(getattr(cfg, "name", None), (None,))[0] is type(cfg)
     by_make_env = isinstance(factory, partial) and factory.func is make_env
     if not (known and by_make_env and factory.args and isinstance(factory.args[0], EnvConfig)):
@@ -96,7 +98,11 @@ def describe_run(algo: Algorithm, **run: Any) -> Config | None:
     seed = options.get("seed")
     return Config(
         env=env,
-        algo=replace(cfg, **{key: run[key] for key in RUN_KEYS}),
+        algo=replace(
+            cfg,
+            **{key: run[key] for key in RUN_KEYS},
+            **({} if network is None else {"network": object_record(network)}),
+        ),
         seed=torch.initial_seed() % 2**32 if seed is None else seed,
         device=str(getattr(algo, "device", "auto")),
         **run,
@@ -212,7 +218,7 @@ def load_config(run_dir: str | Path, *, allow_env_import: bool = False) -> Confi
         reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         raise RlpipeError(f"{path} is damaged ({reason}); it is not a config rlpipe wrote") from err
     code = [f"env.id={cfg.env.id!r}"] if ":" in cfg.env.id else []
-    if cfg.algo.network:
+    if cfg.algo.network.get("_target_"):
         code.append(f"algo.network._target_={cfg.algo.network.get('_target_')!r}")
     check(
         allow_env_import or not code,

@@ -11,7 +11,7 @@ import torch
 import yaml
 from conftest import run_module
 
-from rlpipe import evaluate, load_run, make_env
+from rlpipe import RlpipeError, evaluate, load_run, make_env
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 TINY = ["progress=false", "eval_episodes=2"]
@@ -46,6 +46,8 @@ def test_dueling_network_from_python_trains_and_loads_back(examples, tmp_path):
     assert q.shape == (5, 2) and torch.isfinite(advantage).all()
     result = dueling.main(total_frames=2048, run_dir=str(tmp_path / "run"))
     assert result.frames == 2048
+    with pytest.raises(RlpipeError, match=r"network was a Python object \(dueling_dqn.Duel"):
+        load_run(tmp_path / "run")  # config.yaml records the class, not the object
     run = load_run(tmp_path / "run", network=dueling.DuelingQNet(4, 2))  # an object: passed again
     env = make_env(run.cfg.env, num_envs=2, seed=1)
     assert len(evaluate(run.algo.policy, env, 2).returns) == 2

@@ -131,3 +131,18 @@ def test_mbrl_takes_a_world_model_as_object_or_spec():
     algo.close()
     with pytest.raises(RlpipeError, match="a rlpipe.algos.mbrl.WorldModel"):
         MBRL(PENDULUM, MBRLConfig(**small), network=Tagged(3, 1))
+
+
+def test_a_runner_run_with_a_network_object_records_its_class(tmp_path):
+    from rlpipe import Runner, load_run
+
+    algo = DQN(CARTPOLE, SMALL_DQN, network=Tagged(4, 2))
+    eval_env = make_env(EnvConfig(id="CartPole-v1"), seed=1)
+    Runner(algo, eval_env, tmp_path, total_frames=16, eval_episodes=1, progress=False).run()
+    algo.close()
+    eval_env.close()
+    with pytest.raises(RlpipeError, match=f"network was a Python object \\({__name__}.Tagged\\)"):
+        load_run(tmp_path)
+    run = load_run(tmp_path, network=Tagged(4, 2))
+    assert len(layer_norms(run.algo.policy)) == 1
+    run.algo.close()

@@ -100,6 +100,7 @@ class ARS:
         self.frames = 0
         self.budget = cfg.iterations
         self.env_factory = env_factory
+        self._network = network  # the user's, in place of the default (or cfg.network)
         probe = env_factory(num_envs=1, vectorization="sync")
         try:
             self.policy, normalizer = make_ars_policy(probe, cfg, network)

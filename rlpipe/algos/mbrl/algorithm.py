@@ -19,7 +19,7 @@ from rlpipe.algos.mbrl.planning import ActionCoder, Planner, WorldModel
 from rlpipe.config import AlgoConfig, checked
 from rlpipe.envs import is_discrete, num_actions, observation_size
 from rlpipe.errors import RlpipeError, check
-from rlpipe.models import instantiate
+from rlpipe.models import instantiate, network_spec
 
 PLANNERS = ("cem", "random")
 MODEL_LOSS = "train/model_loss"  # the models' mean training loss over a fit
@@ -202,13 +202,8 @@ class MBRL(EnvAlgorithm):
             hidden_sizes=self.cfg.hidden_sizes,
             members=self.cfg.ensemble_size,
         )
-        check(
-            self._network is None or not self.cfg.network,
-            "a network was given both as an object and as algo.network; give one of them",
-        )
-        model = self._network
-        if model is None and self.cfg.network:
-            model = instantiate(self.cfg.network, "algo.network", **sizes)
+        spec = network_spec(self._network, self.cfg.network)
+        model = instantiate(spec, "algo.network", **sizes) if spec else self._network
         if model is None:
             return WorldModel(**sizes)
         check(
