@@ -24,6 +24,7 @@ from rlpipe.cli import (
     write_hydra_record,
 )
 from rlpipe.errors import check
+from rlpipe.help import help_text
 from rlpipe.pipeline import train
 from rlpipe.runner import RunResult
 from rlpipe.sweep import SweepSummary, run_sweep_job
@@ -69,6 +70,9 @@ def resume_in_place(argv: list[str]) -> list[str]:
 
 def main() -> None:
     """Console entry point (also ``rlpipe`` on the PATH)."""
+    if {"-h", "--help"} & set(sys.argv[1:]):  # ours; Hydra's own: --hydra-help
+        print(help_text())
+        return
     logging.getLogger("torchrl").setLevel(logging.WARNING)  # keep the console to progress + summary
     try:
         sys.argv[1:] = open_entries(resume_in_place(sys.argv[1:]))

@@ -164,6 +164,13 @@ def format_error(err: BaseException) -> str:
     if isinstance(err, MissingMandatoryValue):
         return f"{err.full_key} must be set, e.g. python -m rlpipe {err.full_key}=<value>"
     lines = [line.strip() for line in str(err).splitlines() if line.strip()] or [type(err).__name__]
+    added = re.match(
+        r"Could not override '(experiment|sweep)'\. No match in the defaults list", lines[0]
+    )
+    if added:  # a group that is not in the defaults list: it is added with +
+        group = added.group(1)
+        typed = next((a for a in sys.argv[1:] if a.startswith(f"{group}=")), f"{group}=<name>")
+        return f"{group} is not in the defaults list, so it is added with a +: use +{typed}"
     # Hydra's "... raised while composing config:" says what failed on the next line
     first = " ".join(lines[:2]) if lines[0].endswith(":") else lines[0]
     cause = err.__cause__

@@ -83,3 +83,41 @@ def test_bad_input_is_one_clear_line(rlpipe_cli, tmp_path, args, message):
         assert "dqn" in lines[0].split("choose one of: ")[1].split(", ")
     run = tmp_path / "run"
     assert not (run / "checkpoints").exists() and not (run / "metrics").exists()
+
+
+def test_help_names_groups_options_keys_entry_points_and_examples(tmp_path):
+    from dataclasses import fields
+
+    from conftest import run_module
+
+    from rlpipe.config import Config
+    from rlpipe.help import KEYS
+
+    done = run_module("rlpipe", "--help", cwd=tmp_path)
+    assert done.returncode == 0 and done.stderr == ""
+    text = done.stdout
+    assert "powered by Hydra" not in text and "schema" not in text  # ours, internals hidden
+    for group, option in [
+        ("env", "bipedal"),
+        ("algo", "mbrl"),
+        ("logger", "wandb"),
+        ("+experiment", "dqn_lunarlander"),
+        ("+sweep", "ars_bipedal"),
+    ]:
+        assert f"\n  {group} " in text and option in text
+    assert "cartpole (default)" in text and "dqn (default)" in text
+    # every top-level key of Config (but the groups) with its default and a meaning
+    top = {f.name for f in fields(Config)} - {"env", "algo", "logger"}
+    assert top == set(KEYS)
+    assert "seed=0 " in text and "threads=auto " in text and "total_frames=null " in text
+    for command in ("rlpipe.evaluate", "rlpipe.plot", "rlpipe.play", "rlpipe algo=ars env=bipedal"):
+        assert f"python -m {command}" in text
+    assert not (tmp_path / "outputs").exists()  # help trains nothing
+
+
+@pytest.mark.parametrize("group", ["experiment", "sweep"])
+def test_a_group_added_without_plus_is_told_to_use_it(rlpipe_cli, group):
+    done = rlpipe_cli(f"{group}=dqn_cartpole", "seed=1")
+    assert done.returncode == 2
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].endswith(f"use +{group}=dqn_cartpole"), lines

@@ -1,0 +1,83 @@
+"""``python -m rlpipe --help``: the config groups and their options, the top-level keys with
+their defaults, the other entry points and a few examples (Hydra's own: ``--hydra-help``)."""
+
+from __future__ import annotations
+
+import importlib.resources
+import textwrap
+from dataclasses import MISSING, fields
+
+from rlpipe.config import Config
+
+# the groups a user picks from, as the command line names them, and what each holds
+GROUPS = {
+    "env": "the environment",
+    "algo": "the algorithm (its keys: python -m rlpipe algo=<name> --cfg job)",
+    "logger": "where metrics go besides the CSV files",
+    "+experiment": "a tuned preset (added with +)",
+    "+sweep": "an Optuna hyper-parameter search (added with +, run with -m)",
+}
+DEFAULTS = {"env": "cartpole", "algo": "dqn", "logger": "csv"}  # conf/config.yaml's defaults
+# what each top-level key of Config means (tests/test_cli.py checks every field has a line)
+KEYS = {
+    "seed": "seeds Python, NumPy, torch and the environments",
+    "device": "auto (cuda when present), cpu, cuda, cuda:N",
+    "total_frames": "environment frames to train for (null: algo.total_frames)",
+    "eval_every": "frames between greedy evaluations (null: the algorithm's)",
+    "eval_episodes": "episodes per evaluation (null: the algorithm's)",
+    "checkpoint_every": "frames between checkpoints (null: the algorithm's)",
+    "keep_checkpoints": "newest checkpoints kept",
+    "progress": "the progress bar",
+    "video": "true: an mp4 at every evaluation; N: every N frames (video extra)",
+    "threads": "torch intra-op threads: auto (1 on CPU), N, or 0 (torch's default)",
+    "resume": "a run dir to continue from its newest intact checkpoint",
+}
+ENTRY_POINTS = {
+    "python -m rlpipe.evaluate run_dir=<dir>": "evaluate a trained run (or policy=random)",
+    "python -m rlpipe.plot <run or sweep dirs>": "learning curves, seeds averaged",
+    "python -m rlpipe.play": "play CartPole or MountainCar with the keyboard",
+}
+EXAMPLES = {
+    "python -m rlpipe algo=ars env=bipedal": "ARS teaches BipedalWalker to walk (the main job)",
+    "python -m rlpipe +experiment=dqn_cartpole seed=1": "a tuned preset, another seed",
+    "python -m rlpipe -m algo=dqn,reinforce seed=0,1,2": "a sweep: 6 runs, then a summary",
+}
+
+
+def options(group: str) -> list[str]:
+    """The options of a config group: the YAML files the package ships under ``conf/<group>``."""
+    folder = importlib.resources.files("rlpipe.conf") / group.lstrip("+")
+    return sorted(p.name[: -len(".yaml")] for p in folder.iterdir() if p.name.endswith(".yaml"))
+
+
+def help_text() -> str:
+    """The whole ``--help`` text."""
+    lines = [
+        "rlpipe: reinforcement-learning pipelines from TorchRL parts, composed with Hydra.",
+        "",
+        "usage: python -m rlpipe [group=option ...] [key=value ...]   (-m: a sweep over a,b,c)",
+        "",
+        "Config groups:",
+    ]
+    for group, what in GROUPS.items():
+        names = [f"{n} (default)" if n == DEFAULTS.get(group) else n for n in options(group)]
+        lines.append(f"  {group:<13}{what}")
+        lines += textwrap.wrap(
+            ", ".join(names), 96, initial_indent=" " * 17, subsequent_indent=" " * 17
+        )
+    lines += ["", "Top-level keys (default):"]
+    for f in fields(Config):
+        if f.name in KEYS:
+            default = f.default if f.default is not MISSING else f.default_factory()
+            value = "null" if default is None else str(default).lower()
+            lines.append(f"  {f'{f.name}={value}':<24}{KEYS[f.name]}")
+    lines += ["", "Entry points:"]
+    lines += [f"  {command:<44} {what}" for command, what in ENTRY_POINTS.items()]
+    lines += ["", "Examples:"]
+    lines += [f"  {command:<52} {what}" for command, what in EXAMPLES.items()]
+    lines += [
+        "",
+        "python -m rlpipe [overrides] --cfg job prints the composed config; --hydra-help: Hydra's",
+        "own flags. README.md and docs/ explain every key.",
+    ]
+    return "\n".join(lines)
