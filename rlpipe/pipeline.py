@@ -10,6 +10,7 @@ from typing import Any
 
 import torch
 from torch import nn
+from tqdm.auto import tqdm
 
 from rlpipe.algos import make_algorithm
 from rlpipe.callbacks import make_callbacks
@@ -106,6 +107,7 @@ def _train_locked(
         if found is not None:
             with fitting(found[0]):
                 runner.restore(found[1])
+            tqdm.write(f"rlpipe: resuming {run_dir} from {found[0].name} at {frames:,} frames")
         # checked: from here on the run dir is written
         try:
             save_config(cfg, run_dir)

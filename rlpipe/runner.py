@@ -177,6 +177,7 @@ class Runner:
                 before = self._progress()
                 metrics = self.algo.train_step()
                 bar.update(self._progress() - before)
+                self._bind(bar)
                 faults.point("train_step")
                 self._check_finite(metrics)
                 self._record(metrics)
@@ -332,14 +333,23 @@ class Runner:
             mininterval=0.5,
         )
 
+    def _bind(self, bar: tqdm) -> None:
+        """Counting frames towards ``total_frames`` while the algorithm has a budget of its own
+        (iterations), end the bar (and its ETA) where the budget will end at the frames per
+        iteration so far, if that comes first."""
+        algo = self.algo
+        if self.total_frames is not None and algo.budget is not None and algo.iterations > 0:
+            projected = math.ceil(algo.frames / algo.iterations * algo.budget)
+            bar.total = min(self.total_frames, max(projected, algo.frames))
+
     def _flush(self) -> dict[str, str]:
-        """Log the window's means with the frame rate and elapsed time; the bar's postfix."""
+        """Log the window's means with the frame rate and elapsed time; return the bar's postfix."""
         now, frames = time.perf_counter(), self.algo.frames
         scalars = self._window.pop()
         scalars["time/fps"] = (frames - self._window_frames) / max(now - self._window_start, 1e-9)
         self._log({**scalars, **self._elapsed(now)})
         self._window_start, self._window_frames = now, frames
-        return self._postfix(scalars["time/fps"])
+        return self._postfix()
 
     def _check_finite(self, metrics: Metrics) -> None:
         bad = [k for k in self.algo.finite_keys if k in metrics and not _all_finite(metrics[k])]
@@ -406,8 +416,10 @@ class Runner:
                 "space or pick a writable hydra.run.dir, then resume"
             ) from err
 
-    def _postfix(self, fps: float) -> dict[str, str]:
-        postfix = {"fps": f"{fps:,.0f}", "ep_return": f"{self._last_return:.1f}"}
+    def _postfix(self) -> dict[str, str]:
+        """The bar's postfix (the bar shows the frame rate itself): the latest training episode's
+        return and the last evaluation, once there are any."""
+        postfix = {} if math.isnan(self._last_return) else {"ep_return": f"{self._last_return:.1f}"}
         if self.last_eval is not None:
             postfix["eval"] = f"{self.last_eval.mean:.1f}±{self.last_eval.std:.1f}"
         return postfix

@@ -129,3 +129,22 @@ def test_a_runner_without_a_known_config_writes_none(tmp_path):
     algo.close()
     eval_env.close()
     assert (tmp_path / "summary.json").is_file() and not (tmp_path / "config.yaml").exists()
+
+
+def test_the_bar_ends_where_the_binding_budget_ends(tmp_path):
+    """ARS with algo.iterations=3 and a large total_frames: the bar's total (and ETA) follow
+    the 3 iterations, at the frames per iteration so far; the bar shows one rate."""
+    from types import SimpleNamespace
+
+    from tqdm.auto import tqdm
+
+    algo = SimpleNamespace(frames=0, iterations=0, budget=3, policy=nn.Linear(1, 1))
+    runner = Runner(algo, None, tmp_path, total_frames=60_000_000, progress=False)
+    bar = tqdm(total=60_000_000, disable=True)
+    algo.frames, algo.iterations = 2_000, 1
+    runner._bind(bar)
+    assert bar.total == 6_000
+    algo.budget = 10**6  # the frames bind first
+    runner._bind(bar)
+    assert bar.total == 60_000_000
+    assert "fps" not in runner._postfix() and "ep_return" not in runner._postfix()  # none yet
