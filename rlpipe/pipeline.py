@@ -107,7 +107,8 @@ def _train_locked(
         if found is not None:
             with fitting(found[0]):
                 runner.restore(found[1])
-            tqdm.write(f"rlpipe: resuming {run_dir} from {found[0].name} at {frames:,} frames")
+            if not runner.finished:  # a finished run says so itself
+                tqdm.write(f"rlpipe: resuming {run_dir} from {found[0].name} at {frames:,} frames")
         # checked: from here on the run dir is written
         try:
             save_config(cfg, run_dir)
