@@ -21,6 +21,7 @@ from rlpipe.errors import RlpipeError
 from rlpipe.files import TEMP_SUFFIX, write_atomic
 
 PATTERN = "ckpt_*.pt"
+BEST_PATTERN = "best_*.pt"  # the best-eval checkpoint, beside the newest ones (not a resume point)
 DAMAGED_DIR = "damaged"
 # (path, size, mtime) of checkpoints known to load: written here, or loaded once
 _known_good: set[tuple[str, int, int]] = set()
@@ -29,6 +30,17 @@ _known_good: set[tuple[str, int, int]] = set()
 def checkpoint_path(directory: str | Path, frames: int) -> Path:
     """Where the checkpoint taken after ``frames`` frames lives (names sort by frames)."""
     return Path(directory) / f"ckpt_{frames:012d}.pt"
+
+
+def best_path(directory: str | Path, frames: int) -> Path:
+    """Where the checkpoint of the best evaluation so far (taken after ``frames``) lives."""
+    return Path(directory) / f"best_{frames:012d}.pt"
+
+
+def list_best(directory: str | Path) -> list[Path]:
+    """Best-eval checkpoints in ``directory``, oldest first: the last is the best (one, unless a
+    process died between writing a new one and removing the old)."""
+    return sorted(Path(directory).glob(BEST_PATTERN))
 
 
 def save_checkpoint(state: dict[str, Any], path: str | Path, keep: int | None = None) -> Path:

@@ -1,8 +1,10 @@
 """``python -m rlpipe.evaluate run_dir=... [episodes=100] [video=true] [policy=...]``.
 
-Loads a run's config and its newest (or ``checkpoint=<file>``) checkpoint, runs greedy
-episodes, prints mean ± std, min, max and the mean episode length, and writes a JSON summary
-(plus an mp4 of one more greedy episode with ``video=true``). ``policy=random`` and
+Loads a run's config (``run_dir=latest``: the newest run under ``outputs/``) and its newest
+checkpoint (``checkpoint=best``: the best evaluation's; ``checkpoint=<file>``), runs greedy
+episodes (``render=human``: live in a window), prints mean ± std, min, max and the mean episode
+length, and writes a JSON summary (plus, with ``video=true``, an mp4 of ``video_episodes`` more
+greedy episodes). ``policy=random`` and
 ``policy=heuristic`` (the notebook's hand-written BipedalWalker controller) are baselines on the
 run's env, or on any ``env=<option>`` without a run dir (their summary goes to
 ``outputs/evaluation/<env>-<policy>.json``). The output location is checked before any episode
@@ -23,6 +25,7 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
+import numpy as np
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING
 from tensordict.nn import TensorDictModuleBase
@@ -36,9 +39,9 @@ from rlpipe.errors import check
 from rlpipe.files import check_writable
 from rlpipe.heuristic import heuristic_policy, random_policy
 from rlpipe.loggers import require_extra
-from rlpipe.rundir import load_config, load_run
+from rlpipe.rundir import latest_run, load_config, load_run
 from rlpipe.runtime import resolve_device, seed_everything
-from rlpipe.video import frame_rate, make_render_env, record_episode, write_mp4
+from rlpipe.video import check_display, frame_rate, make_render_env, record_episode, write_mp4
 
 POLICIES = ("trained", "random", "heuristic")
 BASELINES_DIR = Path("outputs") / "evaluation"  # summaries of baselines without a run dir
@@ -48,11 +51,16 @@ BASELINES_DIR = Path("outputs") / "evaluation"  # summaries of baselines without
 class EvaluateConfig:
     """``conf/evaluate.yaml``: what to evaluate, how many episodes, where the results go."""
 
-    run_dir: str | None = None  # a training run's directory (its env and checkpoints)
-    checkpoint: str | None = None  # a file in <run_dir>/checkpoints; null: the newest
+    # a training run's directory (its env and checkpoints); latest: the newest under outputs/
+    run_dir: str | None = None
+    # a file in <run_dir>/checkpoints; best: the best evaluation's; null: the newest
+    checkpoint: str | None = None
     policy: str = "trained"  # trained | random | heuristic
     episodes: int = 10
-    video: bool = False  # also write an mp4 of one greedy episode
+    # human: watch the episodes live in a window (one env copy, at the env's frame rate)
+    render: str | None = None
+    video: bool = False  # also write an mp4 of greedy episodes
+    video_episodes: int = 1  # how many episodes the mp4 shows, one after the other
     seed: int = 0
     device: str = "cpu"
     # the JSON summary; null: <run_dir>/evaluation/<policy>[-<ckpt>].json, without a run dir
@@ -64,6 +72,11 @@ class EvaluateConfig:
 
     def __post_init__(self) -> None:
         check(self.episodes >= 1, f"episodes must be >= 1, got {self.episodes}")
+        check(self.video_episodes >= 1, f"video_episodes must be >= 1, got {self.video_episodes}")
+        check(
+            self.render in (None, "human"),
+            f"render must be human (a live window) or null, got {self.render!r}",
+        )
         check(
             self.policy in POLICIES,
             f"policy must be one of {', '.join(POLICIES)}; got {self.policy!r}",
@@ -115,6 +128,8 @@ def run(cfg: EvaluateConfig) -> dict[str, Any]:
     """Evaluate as ``cfg`` says; write and return the JSON summary."""
     if cfg.video:
         require_extra("video", "video=true")
+    if cfg.run_dir == "latest":
+        cfg = dataclasses.replace(cfg, run_dir=str(latest_run()))
     seed_everything(cfg.seed)
     with ExitStack() as stack:
         policy, env_cfg, name = _policy(cfg, stack)
@@ -126,7 +141,11 @@ def run(cfg: EvaluateConfig) -> dict[str, Any]:
         render_env = make_render_env(env_cfg, seed=cfg.seed) if cfg.video else None
         if render_env is not None:
             stack.callback(render_env.close)
-        env = make_env(env_cfg, num_envs=eval_envs(cfg.episodes), seed=cfg.seed)
+        if cfg.render == "human":  # one copy, episode after episode, drawn as it steps
+            check_display("render=human")
+            env = make_env(env_cfg, num_envs=1, seed=cfg.seed, render_mode="human")
+        else:
+            env = make_env(env_cfg, num_envs=eval_envs(cfg.episodes), seed=cfg.seed)
         stack.callback(env.close)
         result = evaluate(policy, env, cfg.episodes)
         summary: dict[str, Any] = {
@@ -142,10 +161,12 @@ def run(cfg: EvaluateConfig) -> dict[str, Any]:
             "video": None,
         }
         if render_env is not None:
+            episodes = [record_episode(policy, render_env) for _ in range(cfg.video_episodes)]
             video = write_mp4(
-                record_episode(policy, render_env), path.with_suffix(".mp4"), frame_rate(render_env)
+                np.concatenate(episodes), path.with_suffix(".mp4"), frame_rate(render_env)
             )
             summary["video"] = str(video)
+            summary["video_frames"] = [len(frames) for frames in episodes]
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(summary, indent=2) + "\n")
     summary["json"] = str(path)

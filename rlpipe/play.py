@@ -9,7 +9,6 @@ The window shows the episode and its return; Esc or closing the window stops. ``
 from __future__ import annotations
 
 import os
-import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -21,6 +20,7 @@ from hydra.core.config_store import ConfigStore
 from rlpipe.cli import compose_config, run_entry_point
 from rlpipe.config import EnvConfig
 from rlpipe.errors import RlpipeError, check
+from rlpipe.video import check_display
 
 
 @dataclass(frozen=True)
@@ -79,16 +79,6 @@ def key_map(env: gym.Env) -> KeyMap:
     return PLAYABLE[env_id]
 
 
-def check_display() -> None:
-    """Fail with one line when there is no display to open a window on."""
-    has_display = any(os.environ.get(v) for v in ("DISPLAY", "WAYLAND_DISPLAY", "SDL_VIDEODRIVER"))
-    check(
-        has_display or not sys.platform.startswith("linux"),
-        "no display available (DISPLAY is not set): keyboard play needs a window; run it on a "
-        "desktop session (SDL_VIDEODRIVER=dummy runs it headless, without a visible window)",
-    )
-
-
 def play(cfg: PlayConfig, events: Callable[[], Sequence[Any]] | None = None) -> PlayResult:
     """Play ``cfg.env`` from the keyboard in a pygame window until Esc or ``cfg.episodes``.
 
@@ -100,7 +90,7 @@ def play(cfg: PlayConfig, events: Callable[[], Sequence[Any]] | None = None) -> 
         raise RlpipeError(f"cannot make gymnasium env {cfg.env.id!r}: {err}") from err
     try:
         keys = key_map(env)
-        check_display()
+        check_display("keyboard play")
         return _loop(env, keys, cfg, events)
     finally:
         env.close()

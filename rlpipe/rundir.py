@@ -23,7 +23,7 @@ from omegaconf import OmegaConf
 from torch import nn
 
 from rlpipe.algos import ALGORITHMS, Algorithm, make_algorithm
-from rlpipe.checkpoint import fitting, list_checkpoints, load_checkpoint, load_latest
+from rlpipe.checkpoint import fitting, list_best, list_checkpoints, load_checkpoint, load_latest
 from rlpipe.config import RUN_KEYS, Config, EnvConfig, LoggerConfig, flatten
 from rlpipe.envs import make_env
 from rlpipe.errors import RlpipeError, check
@@ -228,6 +228,23 @@ def load_config(run_dir: str | Path, *, allow_env_import: bool = False) -> Confi
     return cfg
 
 
+def latest_run(root: str | Path = "outputs") -> Path:
+    """The run dir under ``root`` (Hydra's ``outputs/``, sweeps included) that was written last:
+    by the newest of its ``config.yaml``, ``summary.json`` and checkpoints."""
+
+    def written(run: Path) -> float:
+        files = [run / CONFIG_FILE, run / "summary.json", *run.glob("checkpoints/*.pt")]
+        return max(f.stat().st_mtime for f in files if f.is_file())
+
+    runs = [path.parent for path in Path(root).glob(f"**/{CONFIG_FILE}")]
+    check(
+        bool(runs),
+        f"run_dir=latest found no run under {root}/ (no {CONFIG_FILE}); train first "
+        "(python -m rlpipe) in this directory, or pass run_dir=<dir>",
+    )
+    return max(runs, key=written)
+
+
 @dataclass
 class LoadedRun:
     """A run rebuilt from its directory: config, algorithm (weights loaded), checkpoint used."""
@@ -238,9 +255,17 @@ class LoadedRun:
 
 
 def read_checkpoint(run_dir: str | Path, name: str | None = None) -> tuple[Path, dict[str, Any]]:
-    """``run_dir/checkpoints/<name>`` and its state, or the newest one that loads (``name``
-    None)."""
+    """``run_dir/checkpoints/<name>`` and its state, the best-eval one (``name`` ``"best"``), or
+    the newest one that loads (``name`` None)."""
     directory = Path(run_dir) / "checkpoints"
+    if name == "best":
+        best = list_best(directory)
+        check(
+            bool(best),
+            f"{run_dir} has no best checkpoint (checkpoints/best_*.pt, kept at each evaluation "
+            "better than the ones before); evaluate the newest with checkpoint=null",
+        )
+        return best[-1], load_checkpoint(best[-1])
     if name is None:
         check(
             bool(list_checkpoints(directory)),

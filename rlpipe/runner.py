@@ -7,7 +7,7 @@ import math
 import signal
 import time
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -19,58 +19,23 @@ from rlpipe import faults
 from rlpipe.algos.base import EPISODE_RETURN, Algorithm, Metrics
 from rlpipe.cadence import Cadence, Window
 from rlpipe.callbacks import Callback
-from rlpipe.checkpoint import checkpoint_path, list_checkpoints, save_checkpoint
+from rlpipe.checkpoint import (
+    best_path,
+    checkpoint_path,
+    list_best,
+    list_checkpoints,
+    save_checkpoint,
+)
 from rlpipe.config import Config
 from rlpipe.episodes import EvalResult, EvalStopped, evaluate
-from rlpipe.errors import RlpipeError, check
+from rlpipe.errors import RlpipeError
 from rlpipe.files import write_atomic
+from rlpipe.outcomes import Diverged, Interrupted, RunResult, check_budget
+from rlpipe.progress import ProgressBar
 from rlpipe.rundir import config_to_dict, describe_run, save_config
 from rlpipe.runtime import rng_state, set_rng_state
 
 SUMMARY_FILE = "summary.json"
-
-
-@dataclass
-class RunResult:
-    """What a finished run reports (also written to ``summary.json`` in the run dir)."""
-
-    eval_mean: float
-    eval_std: float
-    eval_episodes: int
-    frames: int
-    wall_time: float
-    run_dir: str
-
-    def summary_line(self) -> str:
-        return (
-            f"final eval {self.eval_mean:.2f} ± {self.eval_std:.2f} over {self.eval_episodes} "
-            f"episodes | {self.frames:,} frames | {self.wall_time:.1f} s | run dir {self.run_dir}"
-        )
-
-
-class Interrupted(RlpipeError):
-    """SIGINT or SIGTERM stopped the run after a final checkpoint (``exit_code``: 128 + signal)."""
-
-    def __init__(self, signum: int, frames: int, checkpoint: Path) -> None:
-        name = signal.Signals(signum).name
-        super().__init__(
-            f"{name} received: stopped at {frames:,} frames, checkpoint {checkpoint}; "
-            f"resume with the same command plus resume={checkpoint.parent.parent}"
-        )
-        self.exit_code = 128 + signum
-
-
-class Diverged(RlpipeError):
-    """A loss or a parameter became NaN or infinite; no checkpoint is written after it."""
-
-
-def check_budget(algo: Algorithm, total_frames: int | None) -> None:
-    """A run needs ``total_frames`` unless the algorithm has a budget of its own."""
-    check(
-        total_frames is not None or algo.budget is not None,
-        f"total_frames=null, but {type(algo).__name__} has no budget of its own "
-        "(epochs, iterations): set total_frames=N",
-    )
 
 
 class Runner:
@@ -139,6 +104,7 @@ class Runner:
         self._elapsed_before = 0.0  # wall seconds of the run before a resume
         self._eval_seconds = 0.0
         self._elapsed_at = -1  # frames of the last time/elapsed row (one row per frames)
+        self._best = -math.inf  # the best evaluation's mean so far (checkpoints/best_*.pt)
         self._signal: int | None = None
         self._pending_eval = False  # an evaluation a signal cut short, to run first on resume
         self._last_return = math.nan  # of the latest finished training episode
@@ -169,21 +135,20 @@ class Runner:
             for every in (self.log_every, self.eval_every, self.checkpoint_every)
         )
         self._window_start, self._window_frames = time.perf_counter(), frames
-        bar = self._progress_bar()
+        bar = ProgressBar(self.algo, self.total_frames, enabled=self.progress)
         try:
             if self._pending_eval and not self.finished:  # the one a signal cut short
                 self._evaluate()
             while not self.finished:
-                before = self._progress()
                 metrics = self.algo.train_step()
-                bar.update(self._progress() - before)
-                self._bind(bar)
+                bar.advance()
                 faults.point("train_step")
                 self._check_finite(metrics)
                 self._record(metrics)
                 frames = self.algo.frames
                 if log.due(frames):
-                    bar.set_postfix(self._flush(), refresh=False)
+                    self._flush()
+                    bar.show(self._last_return, self.last_eval)
                 if not self.finished and evaluation.due(frames):
                     self._evaluate()
                 if self._signal is not None:
@@ -261,7 +226,12 @@ class Runner:
         CSVs hold every row up to the checkpoint's frames."""
         if self._window.sums:
             self._flush()
-        state = {
+        path = checkpoint_path(self.run_dir / "checkpoints", self.algo.frames)
+        return save_checkpoint(self._state(), path, keep=self.keep_checkpoints)
+
+    def _state(self) -> dict[str, Any]:
+        """What a checkpoint holds (see :meth:`save`)."""
+        return {
             **self.extra_state,
             **({} if self.config is None else {"config": config_to_dict(self.config)}),
             "algo": self.algo.state_dict(),
@@ -273,10 +243,21 @@ class Runner:
                 "last_eval": None if self.last_eval is None else asdict(self.last_eval),
                 "pending_eval": self._pending_eval,
                 "elapsed_at": self._elapsed_at,
+                "best_eval": self._best,
             },
         }
-        path = checkpoint_path(self.run_dir / "checkpoints", self.algo.frames)
-        return save_checkpoint(state, path, keep=self.keep_checkpoints)
+
+    def _keep_best(self) -> None:
+        """After an evaluation better than every earlier one: its checkpoint as
+        ``checkpoints/best_<frames>.pt`` (``checkpoint=best``), the previous best removed."""
+        if self.last_eval is None or not self.last_eval.mean > self._best:
+            return
+        self._best = self.last_eval.mean
+        directory = self.run_dir / "checkpoints"
+        older = list_best(directory)
+        save_checkpoint(self._state(), best_path(directory, self.algo.frames))
+        for path in older:
+            path.unlink(missing_ok=True)
 
     def restore(self, state: dict[str, Any]) -> None:
         """Continue from a checkpoint :meth:`save` wrote (algorithm, RNGs, clocks, last
@@ -294,6 +275,10 @@ class Runner:
         self.last_eval = None if last is None else EvalResult(**last)
         self._pending_eval = bool(runner.get("pending_eval", False))
         self._elapsed_at = int(runner.get("elapsed_at", -1))
+        self._best = float(runner.get("best_eval", -math.inf))
+        for path in list_best(self.run_dir / "checkpoints"):  # from the part of the run redone
+            if int(path.stem.rpartition("_")[2]) > self.algo.frames:
+                path.unlink()
 
     def _catch_signals(self) -> dict[int, Any]:
         """Route SIGINT/SIGTERM to a flag checked after each iteration (main thread only)."""
@@ -317,39 +302,13 @@ class Runner:
     def _stop_requested(self) -> bool:
         return self._signal is not None
 
-    def _progress(self) -> int:
-        """What the bar counts: frames, or iterations when only the algorithm's budget binds."""
-        return self.algo.frames if self.total_frames is not None else self.algo.iterations
-
-    def _progress_bar(self) -> tqdm:
-        by_frames = self.total_frames is not None
-        return tqdm(
-            total=self.total_frames if by_frames else self.algo.budget,
-            initial=self._progress(),
-            unit="frame" if by_frames else "it",
-            unit_scale=True,
-            disable=not self.progress,
-            dynamic_ncols=True,
-            mininterval=0.5,
-        )
-
-    def _bind(self, bar: tqdm) -> None:
-        """Counting frames towards ``total_frames`` while the algorithm has a budget of its own
-        (iterations), end the bar (and its ETA) where the budget will end at the frames per
-        iteration so far, if that comes first."""
-        algo = self.algo
-        if self.total_frames is not None and algo.budget is not None and algo.iterations > 0:
-            projected = math.ceil(algo.frames / algo.iterations * algo.budget)
-            bar.total = min(self.total_frames, max(projected, algo.frames))
-
-    def _flush(self) -> dict[str, str]:
-        """Log the window's means with the frame rate and elapsed time; return the bar's postfix."""
+    def _flush(self) -> None:
+        """Log the window's means with the frame rate and elapsed time."""
         now, frames = time.perf_counter(), self.algo.frames
         scalars = self._window.pop()
         scalars["time/fps"] = (frames - self._window_frames) / max(now - self._window_start, 1e-9)
         self._log({**scalars, **self._elapsed(now)})
         self._window_start, self._window_frames = now, frames
-        return self._postfix()
 
     def _check_finite(self, metrics: Metrics) -> None:
         bad = [k for k in self.algo.finite_keys if k in metrics and not _all_finite(metrics[k])]
@@ -393,6 +352,7 @@ class Runner:
         scalars["time/train_seconds"] = start - self._start - self._eval_seconds
         self._eval_seconds += scalars["time/eval_seconds"]
         self._log({**scalars, **self._elapsed(start)})
+        self._keep_best()
         for callback in self.callbacks:
             callback.on_eval(self, self.last_eval)
 
@@ -415,14 +375,6 @@ class Runner:
                 f"cannot write metrics in {self.run_dir}: {err.strerror or err}; free some disk "
                 "space or pick a writable hydra.run.dir, then resume"
             ) from err
-
-    def _postfix(self) -> dict[str, str]:
-        """The bar's postfix (the bar shows the frame rate itself): the latest training episode's
-        return and the last evaluation, once there are any."""
-        postfix = {} if math.isnan(self._last_return) else {"ep_return": f"{self._last_return:.1f}"}
-        if self.last_eval is not None:
-            postfix["eval"] = f"{self.last_eval.mean:.1f}±{self.last_eval.std:.1f}"
-        return postfix
 
 
 def _all_finite(value: float | list[float]) -> bool:

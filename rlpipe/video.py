@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import sys
 import warnings
 from pathlib import Path
 
@@ -13,7 +14,7 @@ from torchrl.envs import EnvBase, ExplorationType, set_exploration_type
 
 from rlpipe.config import EnvConfig
 from rlpipe.envs import make_env, sub_envs
-from rlpipe.errors import RlpipeError
+from rlpipe.errors import RlpipeError, check
 
 MAX_STEPS = 10_000  # for envs without a time limit
 VIDEO_DIR = "videos"
@@ -33,6 +34,17 @@ def make_render_env(cfg: EnvConfig, seed: int | None = None) -> EnvBase:
             "so there is no video to record; drop video=true"
         )
     return env
+
+
+def check_display(what: str) -> None:
+    """Fail with one line when there is no display to open ``what``'s window on."""
+    has_display = any(os.environ.get(v) for v in ("DISPLAY", "WAYLAND_DISPLAY", "SDL_VIDEODRIVER"))
+    check(
+        has_display or not sys.platform.startswith("linux"),
+        f"no display available (DISPLAY is not set): {what} needs a window; run it on a "
+        "desktop session or under xvfb-run (SDL_VIDEODRIVER=dummy runs it without a visible "
+        "window)",
+    )
 
 
 def frame_rate(env: EnvBase) -> int:

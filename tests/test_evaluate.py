@@ -96,10 +96,42 @@ def test_evaluate_video(run_dir: Path, tmp_path: Path) -> None:
     assert "video" in proc.stdout
 
 
+@pytest.mark.skipif(importlib.util.find_spec("imageio") is None, reason="needs rlpipe[video]")
+def test_latest_run_best_checkpoint_live_window_and_a_longer_video(tmp_path: Path) -> None:
+    """Enjoy: run_dir=latest (the newest run under outputs/), checkpoint=best, render=human (a
+    window; SDL's dummy driver here) and video_episodes=N (N episodes in one mp4)."""
+    for seed in (1, 2):  # the second run is the latest
+        train(
+            Config(seed=seed, total_frames=300, eval_every=100, eval_episodes=2, progress=False),
+            tmp_path / "outputs" / "day" / f"run{seed}",
+        )
+    latest = tmp_path / "outputs" / "day" / "run2"
+    args = ["run_dir=latest", "checkpoint=best", "episodes=2"]
+    proc = run_module("rlpipe.evaluate", *args, "render=human", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    (summary,) = [json.loads(p.read_text()) for p in (latest / "evaluation").glob("*.json")]
+    assert summary["run_dir"] == "outputs/day/run2" and summary["checkpoint"].startswith("best_")
+    proc = run_module("rlpipe.evaluate", *args, "video=true", "video_episodes=3", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads(next((latest / "evaluation").glob("*.json")).read_text())
+    assert len(summary["video_frames"]) == 3 and Path(tmp_path / summary["video"]).is_file()
+    headless = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "SDL_VIDEODRIVER")}
+    done = subprocess.run(
+        [sys.executable, "-m", "rlpipe.evaluate", "run_dir=latest", "render=human"],
+        cwd=tmp_path,
+        env={**headless, "WAYLAND_DISPLAY": ""},
+        capture_output=True,
+        text=True,
+    )
+    assert done.returncode == 2 and "render=human needs a window" in done.stderr
+
+
 @pytest.mark.parametrize(
     "args, message",
     [
         (["run_dir=MISSING"], "no-such-run does not exist"),
+        (["run_dir=RUN", "render=tv"], "render must be human"),
+        (["run_dir=RUN", "video_episodes=0"], "video_episodes must be >= 1"),
         (["run_dir=RUN", "colour=red"], "colour"),
         (["run_dir=RUN", "+colour=red"], "unknown key 'colour'"),
         (["run_dir=RUN", "episodes=0"], "episodes must be >= 1"),

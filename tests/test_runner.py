@@ -13,7 +13,7 @@ from torch import nn
 
 from rlpipe.algos import DQN, DQNConfig
 from rlpipe.checkpoint import list_checkpoints, load_checkpoint
-from rlpipe.config import EnvConfig, LoggerConfig
+from rlpipe.config import Config, EnvConfig, LoggerConfig
 from rlpipe.envs import make_env
 from rlpipe.episodes import evaluate
 from rlpipe.loggers import make_logger
@@ -131,20 +131,52 @@ def test_a_runner_without_a_known_config_writes_none(tmp_path):
     assert (tmp_path / "summary.json").is_file() and not (tmp_path / "config.yaml").exists()
 
 
-def test_the_bar_ends_where_the_binding_budget_ends(tmp_path):
+def test_the_bar_ends_where_the_binding_budget_ends():
     """ARS with algo.iterations=3 and a large total_frames: the bar's total (and ETA) follow
     the 3 iterations, at the frames per iteration so far; the bar shows one rate."""
     from types import SimpleNamespace
 
-    from tqdm.auto import tqdm
+    from rlpipe.progress import ProgressBar, postfix
 
-    algo = SimpleNamespace(frames=0, iterations=0, budget=3, policy=nn.Linear(1, 1))
-    runner = Runner(algo, None, tmp_path, total_frames=60_000_000, progress=False)
-    bar = tqdm(total=60_000_000, disable=True)
+    algo = SimpleNamespace(frames=0, iterations=0, budget=3)
+    bar = ProgressBar(algo, 60_000_000, enabled=False)
     algo.frames, algo.iterations = 2_000, 1
-    runner._bind(bar)
-    assert bar.total == 6_000
+    bar.advance()
+    assert (bar.shown, bar.bar.total) == (2_000, 6_000)
     algo.budget = 10**6  # the frames bind first
-    runner._bind(bar)
-    assert bar.total == 60_000_000
-    assert "fps" not in runner._postfix() and "ep_return" not in runner._postfix()  # none yet
+    bar.advance()
+    assert bar.bar.total == 60_000_000
+    assert postfix(float("nan"), None) == {}  # no "fps" beside tqdm's rate, no ep_return=nan
+    assert postfix(12.0, None) == {"ep_return": "12.0"}
+
+
+def test_the_best_evaluation_keeps_its_checkpoint(tmp_path):
+    """checkpoints/best_<frames>.pt holds the best evaluation's state (one file, beside the
+    newest checkpoints); checkpoint=best loads it; a resume drops a best from the redone part."""
+    from rlpipe.checkpoint import list_best
+    from rlpipe.metrics import read_metric
+    from rlpipe.pipeline import train
+    from rlpipe.rundir import load_run, read_checkpoint
+
+    cfg = Config(
+        env=EnvConfig(num_envs=2),
+        algo=DQNConfig(frames_per_batch=16, learning_starts=32),
+        total_frames=480,
+        eval_every=96,
+        eval_episodes=2,
+        checkpoint_every=192,
+        progress=False,
+    )
+    train(cfg, tmp_path)
+    frames, means = read_metric(tmp_path, "eval/return_mean")
+    best = int(frames[int(means.argmax())])  # the first of the best
+    assert [p.name for p in list_best(tmp_path / "checkpoints")] == [f"best_{best:012d}.pt"]
+    path, state = read_checkpoint(tmp_path, "best")
+    assert state["frames"] == best and state["runner"]["best_eval"] == pytest.approx(means.max())
+    run = load_run(tmp_path, "best")
+    assert run.checkpoint == path and run.algo.frames == best
+    run.algo.close()
+    # a best from past the checkpoint a resume starts at belongs to the part redone: dropped
+    (tmp_path / "checkpoints" / f"best_{10**6:012d}.pt").write_bytes(path.read_bytes())
+    train(replace(cfg, total_frames=576), tmp_path)
+    assert all(int(p.stem[5:]) <= 576 for p in list_best(tmp_path / "checkpoints"))
