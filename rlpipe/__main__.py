@@ -27,7 +27,7 @@ from rlpipe.errors import check
 from rlpipe.help import help_text
 from rlpipe.pipeline import train
 from rlpipe.runner import RunResult
-from rlpipe.sweep import SweepSummary, run_sweep_job
+from rlpipe.sweep import SweepStopped, SweepSummary, resume_sweep, run_sweep_job
 
 register_configs()
 
@@ -44,7 +44,9 @@ def _hydra_main(cfg: DictConfig) -> float | None:
         # exiting would end the whole sweep: the failure is recorded and the other jobs run
         record = partial(write_hydra_record, job_cfg=cfg)
         rejected = Path(hydra_cfg.sweep.dir) / "rejected" / str(hydra_cfg.job.num)
-        result = run_sweep_job(job, run_dir, record=record, rejected_dir=rejected)
+        result = run_sweep_job(
+            job, run_dir, record=record, rejected_dir=rejected, sweep_dir=hydra_cfg.sweep.dir
+        )
         if result is None:
             return None  # a failed trial for sweepers (Optuna)
     else:
@@ -75,12 +77,17 @@ def main() -> None:
         return
     logging.getLogger("torchrl").setLevel(logging.WARNING)  # keep the console to progress + summary
     try:
-        sys.argv[1:] = open_entries(resume_in_place(sys.argv[1:]))
+        sys.argv[1:] = open_entries(resume_in_place(resume_sweep(sys.argv[1:])))
         if {"-c", "--cfg"} & set(sys.argv[1:]):
             validate_overrides(sys.argv[1:])  # Hydra prints the config without calling the job
     except USER_ERRORS as err:
         fail(err)
-    run_cli(_hydra_main)
+    try:
+        run_cli(_hydra_main)
+    except SweepStopped as stop:
+        print(f"\n{stop.table}")
+        print(f"rlpipe: {stop.message}", file=sys.stderr)
+        sys.exit(stop.exit_code)
     if SweepSummary.failed_jobs:
         sys.exit(1)  # the sweep's summary, just printed, names the failed jobs and their errors
 

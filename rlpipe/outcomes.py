@@ -33,7 +33,7 @@ class Interrupted(RlpipeError):
     """SIGINT or SIGTERM stopped the run after a final checkpoint (``exit_code``: 128 + signal)."""
 
     def __init__(self, signum: int, frames: int, checkpoint: Path) -> None:
-        name = signal.Signals(signum).name
+        name = self.signal_name = signal.Signals(signum).name
         super().__init__(
             f"{name} received: stopped at {frames:,} frames, checkpoint {checkpoint}; "
             f"resume with the same command plus resume={checkpoint.parent.parent}"

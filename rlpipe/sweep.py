@@ -16,6 +16,7 @@ import io
 import json
 import logging
 import math
+import re
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -27,13 +28,15 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
 from rlpipe.cli import USER_ERRORS, format_error
+from rlpipe.errors import check
 from rlpipe.files import write_atomic
+from rlpipe.outcomes import Interrupted, RunResult
 from rlpipe.rundir import RunDirConflict
-from rlpipe.runner import RunResult
 
 log = logging.getLogger(__name__)
 
 ERROR_FILE = "error.json"
+INTERRUPTED_FILE = "interrupted.json"
 CSV_FILE = "summary.csv"
 MARKDOWN_FILE = "summary.md"
 COLUMNS = (
@@ -50,14 +53,56 @@ COLUMNS = (
 )
 
 
+def resume_sweep(argv: list[str]) -> list[str]:
+    """``-m resume_sweep=<sweep dir> [more overrides]``: the sweep's own command again, in its
+    dir (from Hydra's ``multirun.yaml``): finished jobs report their result, interrupted ones
+    resume from their checkpoint, the rest start."""
+    given = [arg for arg in argv if re.match(r"^\+{0,2}resume_sweep=", arg)]
+    if not given:
+        return argv
+    sweep_dir = Path(given[-1].partition("=")[2])
+    record = sweep_dir / "multirun.yaml"
+    check(
+        record.is_file(),
+        f"{sweep_dir} is not a sweep directory (no multirun.yaml); pass the directory a "
+        "python -m rlpipe -m ... run wrote (outputs/multirun/<date>/<time>)",
+    )
+    task = list(OmegaConf.load(record).hydra.overrides.task)
+    rest = [arg for arg in argv if arg not in given and arg not in ("-m", "--multirun")]
+    return ["-m", *task, *rest, f"hydra.sweep.dir={sweep_dir}"]
+
+
+class SweepStopped(BaseException):
+    """A signal stopped a sweep's job (after its checkpoint): the sweep stops as a whole.
+
+    A ``BaseException``, so that it passes through Hydra's launcher (which would record an
+    ``Exception`` as a failed job and go on with the next); the command line prints
+    :attr:`message` and exits with the signal's code.
+    """
+
+    def __init__(self, interrupted: Interrupted, sweep_dir: str | Path) -> None:
+        super().__init__(str(interrupted))
+        self.exit_code = interrupted.exit_code
+        rows = write_summary(sweep_dir)
+        self.table = summary_markdown(rows)
+        done = sum(row.status == "ok" for row in rows)
+        self.message = (
+            f"sweep stopped: {interrupted.signal_name} during job {len(rows) - 1} (checkpointed), "
+            f"{done} jobs finished; continue the whole sweep with: "
+            f"python -m rlpipe -m resume_sweep={sweep_dir}"
+        )
+
+
 def run_sweep_job(
     job: Callable[[], RunResult],
     run_dir: str | Path,
     *,
     record: Callable[[Path], None],
     rejected_dir: str | Path,
+    sweep_dir: str | Path,
 ) -> RunResult | None:
-    """Run one job of a sweep; on an error, record it and return None.
+    """Run one job of a sweep; on an error, record it and return None; on a signal
+    (:class:`~rlpipe.outcomes.Interrupted`), record it and stop the sweep (:class:`SweepStopped`).
 
     The error goes to ``error.json`` beside the job's record (``record(dir)`` writes Hydra's
     ``.hydra/`` files where missing) in ``run_dir``, or, when the run dir belongs to another run
@@ -67,7 +112,10 @@ def run_sweep_job(
     """
     start = time.perf_counter()
     try:
-        return job()
+        result = job()
+    except Interrupted as err:  # Ctrl-C/SIGTERM: the job checkpointed; the whole sweep stops
+        _mark(Path(run_dir), INTERRUPTED_FILE, str(err), time.perf_counter() - start)
+        raise SweepStopped(err, sweep_dir) from err
     except Exception as err:  # noqa: BLE001  (any failure is this job's, not the sweep's)
         if isinstance(err, USER_ERRORS):
             message = format_error(err)
@@ -77,9 +125,20 @@ def run_sweep_job(
         print(f"rlpipe: error: {message} (job in {run_dir})", file=sys.stderr)
         where = Path(rejected_dir if isinstance(err, RunDirConflict) else run_dir)
         record(where)
-        record_error = {"error": message, "wall_time": time.perf_counter() - start}
-        write_atomic(where / ERROR_FILE, (json.dumps(record_error, indent=2) + "\n").encode())
+        _mark(where, ERROR_FILE, message, time.perf_counter() - start)
         return None
+    for stale in (ERROR_FILE, INTERRUPTED_FILE):  # of an earlier attempt (resume_sweep)
+        (Path(run_dir) / stale).unlink(missing_ok=True)
+    return result
+
+
+def _mark(job_dir: Path, name: str, message: str, wall_time: float) -> None:
+    """Record why a job did not finish (``error.json`` or ``interrupted.json``, the other
+    removed: the newest attempt's reason counts)."""
+    data = {"error": message, "wall_time": wall_time}
+    write_atomic(job_dir / name, (json.dumps(data, indent=2) + "\n").encode())
+    other = INTERRUPTED_FILE if name == ERROR_FILE else ERROR_FILE
+    (job_dir / other).unlink(missing_ok=True)
 
 
 @dataclass
@@ -88,7 +147,7 @@ class JobRow:
 
     job: int
     overrides: list[str]
-    status: str  # ok | failed | unfinished
+    status: str  # ok | failed | interrupted | unfinished
     run_dir: str
     eval_mean: float = math.nan
     eval_std: float = math.nan
@@ -107,14 +166,16 @@ def collect_jobs(sweep_dir: str | Path) -> list[JobRow]:
         number = OmegaConf.load(hydra_dir / "hydra.yaml").hydra.job.num
         row = JobRow(int(number), list(overrides), "unfinished", str(job_dir))
         summary, error = job_dir / "summary.json", job_dir / ERROR_FILE
+        interrupted = job_dir / INTERRUPTED_FILE
         if summary.is_file():
             data = json.loads(summary.read_text())
             row.status = "ok"
             for key in ("eval_mean", "eval_std", "eval_episodes", "frames", "wall_time"):
                 setattr(row, key, data[key])
-        elif error.is_file():
-            data = json.loads(error.read_text())
-            row.status, row.error, row.wall_time = "failed", data["error"], data["wall_time"]
+        elif interrupted.is_file() or error.is_file():
+            data = json.loads((interrupted if interrupted.is_file() else error).read_text())
+            row.status = "interrupted" if interrupted.is_file() else "failed"
+            row.error, row.wall_time = data["error"], data["wall_time"]
         else:
             row.error = "did not finish (no summary.json): killed, or still running"
         rows.append(row)

@@ -149,3 +149,69 @@ def test_optuna_sweeper_maximises_the_returned_eval_mean(tmp_path):
     results = yaml.safe_load((sweep / "optimization_results.yaml").read_text())
     assert results["best_params"] == {"algo.lr": 0.001}
     assert results["best_value"] == pytest.approx(float(ok["eval_mean"]))
+
+
+def test_a_signal_stops_the_whole_sweep_and_resume_sweep_continues_it(tmp_path):
+    """The first SIGINT checkpoints the running job and stops the sweep (no next job starts);
+    ``-m resume_sweep=<dir>`` then reports the finished job, resumes the interrupted one from
+    its checkpoint and runs the rest."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    sweep = tmp_path / "sweep"
+    args = [
+        "-m",
+        "seed=0,1,2",
+        "total_frames=6000",
+        "eval_every=3000",
+        "eval_episodes=2",
+        "progress=false",
+        f"hydra.sweep.dir={sweep}",
+    ]
+    env = {**os.environ, "SDL_VIDEODRIVER": "dummy"}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "rlpipe", *args],
+        cwd=tmp_path,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    deadline = time.monotonic() + 240
+    while not (sweep / "1" / "metrics").is_dir() and time.monotonic() < deadline:
+        time.sleep(0.2)  # job 1 has started training
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    last = err.strip().splitlines()[-1]
+    assert "sweep stopped: SIGINT during job 1 (checkpointed), 1 jobs finished" in last
+    assert f"python -m rlpipe -m resume_sweep={sweep}" in last
+    assert not (sweep / "2").exists()  # the next job never started
+    assert "| 1 | seed=1 | interrupted |" in out
+    stopped_at = json.loads((sweep / "1" / "interrupted.json").read_text())
+    assert "SIGINT received: stopped at" in stopped_at["error"]
+    finished = (sweep / "0" / "summary.json").read_text()
+
+    done = run_module("rlpipe", "-m", f"resume_sweep={sweep}", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert "resuming" in done.stdout and "already finished" in done.stdout
+    assert (sweep / "0" / "summary.json").read_text() == finished  # reported, not retrained
+    rows = list(csv.DictReader((sweep / "summary.csv").open()))
+    assert [(r["job"], r["status"], r["frames"]) for r in rows] == [
+        ("0", "ok", "6000"),
+        ("1", "ok", "6000"),
+        ("2", "ok", "6000"),
+    ]
+    assert not (sweep / "1" / "interrupted.json").exists()
+
+
+def test_resume_sweep_of_a_directory_that_is_not_a_sweep_is_one_line(tmp_path):
+    done = run_module("rlpipe", "-m", f"resume_sweep={tmp_path}", cwd=tmp_path)
+    assert done.returncode == 2
+    assert done.stderr.strip() == (
+        f"rlpipe: error: {tmp_path} is not a sweep directory (no multirun.yaml); pass the "
+        "directory a python -m rlpipe -m ... run wrote (outputs/multirun/<date>/<time>)"
+    )
