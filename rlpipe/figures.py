@@ -4,6 +4,7 @@ comparisons of many (``python -m rlpipe.plot``). Reading the metric CSVs and gro
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -28,11 +29,15 @@ def moving_average(values: np.ndarray, window: int) -> np.ndarray:
 
 
 def _title(run_dir: Path) -> str:
-    config = run_dir / "config.yaml"
-    if not config.is_file():
-        return str(run_dir)
-    cfg = OmegaConf.load(config)
-    return f"{OmegaConf.select(cfg, 'algo.name')} on {OmegaConf.select(cfg, 'env.id')}: {run_dir}"
+    """``<algo> on <env id>: <run dir>``, the dir relative to the working directory when under it
+    (a figure should not show where a home directory is)."""
+    env_id, algo = run_identity(run_dir)
+    where = (
+        Path(os.path.relpath(run_dir.resolve()))
+        if run_dir.resolve().is_relative_to(Path.cwd())
+        else Path(run_dir.name)
+    )
+    return f"{algo} on {env_id}: {where}"
 
 
 def plot_run(run_dir: str | Path, path: str | Path | None = None) -> Path:
@@ -103,6 +108,20 @@ def aligned(runs: Sequence[Path], metric: str) -> tuple[np.ndarray, np.ndarray]:
     return grid, np.stack([np.interp(grid, frames, values) for frames, values in curves])
 
 
+# what a metric is, for titles (any other metric is named by its key)
+METRIC_NAMES = {EVAL_METRIC: "greedy evaluation return", "train/episode_return": "training return"}
+MARKERS_UP_TO = 40  # points per line: markers on each point up to this many
+
+
+def run_identity(run: Path) -> tuple[str, str]:
+    """``(env id, algorithm)`` of a run dir, from its ``config.yaml`` ("?" where unknown)."""
+    config = run / "config.yaml"
+    cfg = OmegaConf.load(config) if config.is_file() else OmegaConf.create()
+    return str(OmegaConf.select(cfg, "env.id", default="?")), str(
+        OmegaConf.select(cfg, "algo.name", default="?")
+    )
+
+
 def plot_groups(
     groups: Sequence[Group],
     path: str | Path,
@@ -112,23 +131,9 @@ def plot_groups(
     svg: bool = False,
     title: str | None = None,
 ) -> list[Path]:
-    """One line per group (``aggregate`` over its seeds) with a 95% bootstrap band."""
-    check(aggregate in AGGREGATES, f"agg must be one of {', '.join(AGGREGATES)}; got {aggregate!r}")
-    fig = Figure(figsize=(9, 5.5), dpi=100, layout="constrained")
-    ax = fig.subplots()
-    for i, group in enumerate(groups):
-        frames, values = aligned(group.runs, metric)
-        line = AGGREGATES[aggregate](values)
-        n = len(group.runs)
-        ax.plot(frames, line, color=f"C{i}", lw=2, label=f"{group.label} ({aggregate} of {n})")
-        if n > 1:
-            low, high = bootstrap_band(values, aggregate)
-            ax.fill_between(frames, low, high, color=f"C{i}", alpha=0.2)
-    ax.set_xlabel("frames")
-    ax.set_ylabel(metric)
-    ax.set_title(title or f"{metric}: {aggregate} over seeds, 95% bootstrap CI")
-    ax.grid(alpha=0.3)
-    ax.legend(loc="best", fontsize=8)
+    """One line per group (``aggregate`` over its seeds) with a 95% bootstrap band; one panel
+    per env when the groups span several, each titled by its env and algorithm(s)."""
+    fig = groups_figure(groups, metric=metric, aggregate=aggregate, title=title)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path)
@@ -137,3 +142,66 @@ def plot_groups(
         written.append(path.with_suffix(".svg"))
         fig.savefig(written[-1])
     return written
+
+
+def groups_figure(
+    groups: Sequence[Group], *, metric: str, aggregate: str, title: str | None = None
+) -> Figure:
+    """The figure :func:`plot_groups` saves."""
+    check(aggregate in AGGREGATES, f"agg must be one of {', '.join(AGGREGATES)}; got {aggregate!r}")
+    panels: dict[str, list[tuple[int, Group, str]]] = {}
+    for i, group in enumerate(groups):
+        env_id, algo = run_identity(group.runs[0])
+        panels.setdefault(env_id, []).append((i, group, algo))
+    columns = min(len(panels), 3)
+    rows = -(-len(panels) // columns)
+    fig = Figure(figsize=(6.5 * columns, 4.5 * rows + 0.5), dpi=100, layout="constrained")
+    axes = np.atleast_1d(fig.subplots(rows, columns, squeeze=False).ravel())
+    for ax, (env_id, members) in zip(axes, panels.items()):
+        for i, group, _ in members:
+            frames, values = aligned(group.runs, metric)
+            line = AGGREGATES[aggregate](values)
+            n = len(group.runs)
+            label = _legend(group.label, several_envs=len(panels) > 1)
+            label = f"{label} ({aggregate} of {n})" if label else f"{aggregate} of {n} seeds"
+            ax.plot(
+                frames,
+                line,
+                color=f"C{i}",
+                lw=2,
+                label=label,
+                marker="o" if len(frames) <= MARKERS_UP_TO else None,
+                markersize=4,
+            )
+            if n > 1:
+                low, high = bootstrap_band(values, aggregate)
+                ax.fill_between(frames, low, high, color=f"C{i}", alpha=0.2)
+        algos = sorted({algo for _, _, algo in members})
+        ax.set_title(f"{env_id} · {', '.join(algos)}")
+        ax.set_xlabel("frames")
+        ax.set_ylabel("return" if metric in METRIC_NAMES else metric)
+        ax.grid(alpha=0.3)
+        ax.legend(loc="best", fontsize=8)
+        _honest_range(ax)
+    for ax in axes[len(panels) :]:
+        ax.set_visible(False)
+    what = METRIC_NAMES.get(metric, metric)
+    fig.suptitle(title or f"{what}: {aggregate} over seeds, 95% bootstrap CI", fontsize=11)
+    return fig
+
+
+def _legend(label: str, *, several_envs: bool) -> str:
+    """A group's legend entry: its label without the env (the panel names it)."""
+    if not several_envs:
+        return label
+    kept = [o for o in label.split() if not o.lstrip("+~").startswith(("env=", "env.id="))]
+    return " ".join(kept)
+
+
+def _honest_range(ax: Axes) -> None:
+    """Widen a y-range that would blow noise up: at least 10% of the values' magnitude."""
+    low, high = ax.get_ylim()
+    span, size = high - low, max(abs(low), abs(high), 1.0)
+    if span < 0.1 * size:
+        middle = (low + high) / 2
+        ax.set_ylim(middle - 0.05 * size, middle + 0.05 * size)

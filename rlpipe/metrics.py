@@ -166,7 +166,7 @@ def group_runs(runs: Sequence[Path]) -> list[Group]:
     """Group runs that differ only by ``seed`` (or ``resume``), each labelled by what sets it apart.
 
     Runs whose overrides agree but for ``seed`` and ``resume`` form one group; a group's label
-    is its overrides that not every run shares (the first run's dir when there are none).
+    is its overrides that not every run shares (a single group: its overrides, or "defaults").
     """
     keyed: dict[frozenset[str], list[Path]] = {}
     for run in runs:
@@ -175,6 +175,6 @@ def group_runs(runs: Sequence[Path]) -> list[Group]:
     common = frozenset.intersection(*keyed) if keyed else frozenset()
     groups = []
     for overrides, members in keyed.items():
-        label = " ".join(sorted(overrides - common))
-        groups.append(Group(label or members[0].parent.name + "/" + members[0].name, members))
+        label = " ".join(sorted(overrides - common if len(keyed) > 1 else overrides))
+        groups.append(Group(label or "defaults", members))
     return groups

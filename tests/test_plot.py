@@ -189,3 +189,42 @@ def test_plot_chmod_read_only_run_dir(
     finally:
         copy.chmod(0o755)
     assert not (copy / "curves.png").exists()
+
+
+def test_a_figure_a_reader_understands(
+    runs: list[Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Panels per env titled by env and algorithm, legends from the differing overrides (not
+    folders), markers on sparse points, a flat line not blown up, relative paths in titles."""
+    from dataclasses import replace
+
+    from rlpipe import EnvConfig
+    from rlpipe.figures import _title, groups_figure
+    from rlpipe.metrics import Group, group_runs
+
+    car = [tmp_path / f"car{seed}" for seed in (0, 1)]
+    for seed, run_dir in enumerate(car):
+        train(replace(tiny_config(seed), env=EnvConfig(id="MountainCar-v0")), run_dir)
+    for run_dir, env in [*((r, "cartpole") for r in runs), *((r, "mountaincar") for r in car)]:
+        (run_dir / ".hydra").mkdir(exist_ok=True)  # as a sweep over env and seed records them
+        seed = run_dir.name[-1]
+        (run_dir / ".hydra" / "overrides.yaml").write_text(f"- env={env}\n- seed={seed}\n")
+    fig = groups_figure(group_runs([*runs, *car]), metric="eval/return_mean", aggregate="mean")
+    axes = [ax for ax in fig.axes if ax.get_visible()]
+    assert [ax.get_title() for ax in axes] == ["CartPole-v1 · dqn", "MountainCar-v0 · dqn"]
+    assert fig._suptitle.get_text().startswith("greedy evaluation return: mean over seeds")
+    for ax in axes:
+        (line,) = ax.get_lines()
+        assert line.get_marker() == "o"  # 2 eval points: each one marked
+        assert [t.get_text() for t in ax.get_legend().get_texts()] == ["mean of 2 seeds"]
+    low, high = axes[1].get_ylim()  # MountainCar: -200 flat; the axis spans >= 10% of 200
+    assert high - low >= 20 and low < -200 < high
+    one = groups_figure(
+        [Group("algo.lr=0.001", runs), Group("algo.lr=0.0001", car[:1])],
+        metric="eval/return_mean",
+        aggregate="mean",
+    )
+    labels = [t.get_text() for t in one.axes[0].get_legend().get_texts()]
+    assert labels == ["algo.lr=0.001 (mean of 2)"]  # its panel (CartPole); the other has its own
+    monkeypatch.chdir(tmp_path)
+    assert _title(car[0]) == "dqn on MountainCar-v0: car0"
