@@ -11,7 +11,7 @@ import torch
 from rlpipe.config import Config, EnvConfig
 from rlpipe.episodes import EvalResult
 from rlpipe.figures import plot_run
-from rlpipe.loggers import require_extra, takes_video
+from rlpipe.loggers import log_artifacts, require_extra, takes_video
 from rlpipe.video import frame_rate, make_render_env, record_episode, write_mp4
 
 if TYPE_CHECKING:  # the runner calls these hooks
@@ -72,10 +72,12 @@ class VideoCallback(Callback):
 
 
 class CurveCallback(Callback):
-    """Draws ``curve.png`` into the run dir when the run ends."""
+    """Draws ``curve.png`` into the run dir when the run ends, and gives it and the run's videos
+    to the tracker (W&B, MLflow: artifacts; TensorBoard: an image)."""
 
     def on_end(self, runner: Runner, result: RunResult) -> None:
-        plot_run(runner.run_dir)
+        curve = plot_run(runner.run_dir)
+        log_artifacts(runner.logger, [curve, *sorted((runner.run_dir / VIDEO_DIR).glob("*.mp4"))])
 
 
 class CloseLogger(Callback):

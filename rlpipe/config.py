@@ -144,6 +144,8 @@ class Config:
     eval_episodes: int | None = None  # null: algo.eval_episodes
     checkpoint_every: int | None = None  # null: algo.checkpoint_every
     keep_checkpoints: int = checked(3, "at_least_one")
+    # frames between two rows of the training scalars (train/loss, time/fps, ...): their mean
+    log_every: int = checked(1_000, "at_least_one")
     progress: bool = True
     video: Any = False  # false | true (every evaluation) | N (every N frames); always at the end
     # torch intra-op threads: auto (1 on CPU: small networks gain nothing from more, and idle

@@ -27,6 +27,7 @@ KEYS = {
     "eval_episodes": "episodes per evaluation (null: the algorithm's)",
     "checkpoint_every": "frames between checkpoints (null: the algorithm's)",
     "keep_checkpoints": "newest checkpoints kept",
+    "log_every": "frames between rows of training scalars (train/loss, time/fps)",
     "progress": "the progress bar",
     "video": "true: an mp4 at every evaluation; N: every N frames (video extra)",
     "threads": "torch intra-op threads: auto (1 on CPU), N, or 0 (torch's default)",

@@ -10,11 +10,14 @@ videos, where they take video) on top.
 from __future__ import annotations
 
 import importlib
+import re
 from collections.abc import Sequence
+from dataclasses import dataclass
 from io import FileIO
 from pathlib import Path
 from typing import Any
 
+from omegaconf import OmegaConf
 from torch import Tensor
 from torchrl.record.loggers import (
     Logger,
@@ -23,7 +26,7 @@ from torchrl.record.loggers import (
     WandbLogger,
 )
 
-from rlpipe.config import LoggerConfig
+from rlpipe.config import Config, LoggerConfig, flatten
 from rlpipe.errors import RlpipeError
 
 METRICS_DIR = "metrics"  # <run dir>/metrics/scalars/<name>.csv (TorchRL CSVLogger's layout)
@@ -183,12 +186,44 @@ def takes_video(logger: Logger | None) -> bool:
     return isinstance(logger, (TensorboardLogger, WandbLogger))
 
 
-def make_logger(cfg: LoggerConfig, run_dir: str | Path) -> Logger | None:
+@dataclass
+class RunCard:
+    """What a tracker is told about a run: a name, tags and the hyper-parameters (flat)."""
+
+    name: str
+    tags: dict[str, str]
+    params: dict[str, Any]  # the resolved config, dotted keys -> scalars
+
+
+def run_card(cfg: Config, overrides: Sequence[str] = ()) -> RunCard:
+    """The card of run ``cfg``: named ``<algo> <env id> seed=<s>`` plus the command line's other
+    overrides that decide the results (not budgets, cadences, logging), tagged with algo, env
+    and seed, its resolved config as the hyper-parameters."""
+    from rlpipe.rundir import NOT_FINGERPRINTED  # what does not decide a run's results
+
+    def told(override: str) -> bool:  # not in the name already, and deciding the results
+        key = override.lstrip("+~").split("=")[0]
+        named = key in ("seed", "algo", "env") or key.startswith("hydra")
+        return not named and key.split(".")[0] not in NOT_FINGERPRINTED
+
+    extra = [o for o in overrides if told(o)]
+    name = f"{cfg.algo.name} {cfg.env.id} seed={cfg.seed}"
+    name += f" [{' '.join(extra)}]" if extra else ""
+    flat = flatten(OmegaConf.to_container(OmegaConf.structured(cfg)))
+    params = {k: v if isinstance(v, int | float | str | bool) else str(v) for k, v in flat.items()}
+    tags = {"algo": cfg.algo.name, "env": cfg.env.id, "seed": str(cfg.seed)}
+    return RunCard(name[:250], tags, params)
+
+
+def make_logger(
+    cfg: LoggerConfig, run_dir: str | Path, card: RunCard | None = None
+) -> Logger | None:
     """The TorchRL logger chosen by ``cfg.backend``, writing into ``run_dir``.
 
     ``csv``: :class:`CsvLogger`; ``none``: no logger; ``tensorboard`` / ``wandb`` / ``mlflow``: the
-    CSV files plus that backend (a :class:`TeeLogger`). A backend whose pip extra is missing
-    raises :class:`RlpipeError` naming the install command.
+    CSV files plus that backend (a :class:`TeeLogger`), which gets the ``card``'s name, tags and
+    hyper-parameters (TensorBoard's hparams, W&B's config, MLflow's params). A backend whose pip
+    extra is missing raises :class:`RlpipeError` naming the install command.
     """
     if cfg.backend == "none":
         return None
@@ -198,25 +233,60 @@ def make_logger(cfg: LoggerConfig, run_dir: str | Path) -> Logger | None:
     csv = CsvLogger(exp_name=METRICS_DIR, log_dir=run_dir)
     if cfg.backend == "csv":
         return csv
-    return TeeLogger([csv, _backend(cfg, run_dir)])
+    card = card or RunCard(run_dir.name, {}, {})
+    return TeeLogger([csv, _backend(cfg, run_dir, card)])
 
 
-def _backend(cfg: LoggerConfig, run_dir: Path) -> Logger:
-    name = run_dir.name
+def _backend(cfg: LoggerConfig, run_dir: Path, card: RunCard) -> Logger:
     if cfg.backend == "tensorboard":
-        return TensorboardLogger(exp_name=name, log_dir=str(run_dir / "tensorboard"))
+        folder = re.sub(r"[^A-Za-z0-9._=,-]+", "_", card.name)
+        logger = TensorboardLogger(exp_name=folder, log_dir=str(run_dir / "tensorboard"))
+        if card.params:
+            logger.log_hparams(card.params)
+        return logger
     if cfg.backend == "wandb":
         # offline unless a project or a mode says otherwise
         mode = cfg.mode or ("online" if cfg.project else "offline")
         return WandbLogger(
-            exp_name=name,
+            exp_name=card.name,
             save_dir=str(run_dir),
             project=cfg.project or "rlpipe",
             mode=mode,
             log_env_packages=False,
+            config=card.params,
+            tags=[f"{key}:{value}" for key, value in card.tags.items()],
         )
+    import mlflow
+
     uri = cfg.tracking_uri or f"sqlite:///{run_dir / 'mlflow.db'}"
     artifacts = None if cfg.tracking_uri else (run_dir / "mlartifacts").as_uri()
-    return MLFlowLogger(
+    logger = MLFlowLogger(
         exp_name=cfg.project or "rlpipe", tracking_uri=uri, artifact_location=artifacts
     )
+    run_id = logger.experiment.info.run_id
+    client = mlflow.MlflowClient(uri)
+    client.set_tag(run_id, "mlflow.runName", card.name)
+    for key, value in card.tags.items():
+        client.set_tag(run_id, key, value)
+    for key, value in card.params.items():
+        client.log_param(run_id, key, str(value)[:6000])
+    return logger
+
+
+def log_artifacts(logger: Logger | None, paths: Sequence[Path]) -> None:
+    """Give the tracker behind ``logger`` files of the run (``curve.png``, videos): W&B and
+    MLflow keep them as artifacts, TensorBoard shows PNGs as images."""
+    backends = logger.loggers if isinstance(logger, TeeLogger) else [logger]
+    for backend in backends:
+        for path in paths:
+            if isinstance(backend, WandbLogger):
+                backend.experiment.save(str(path), base_path=str(path.parent), policy="now")
+            elif isinstance(backend, MLFlowLogger):
+                import mlflow
+
+                mlflow.MlflowClient().log_artifact(backend.experiment.info.run_id, str(path))
+            elif isinstance(backend, TensorboardLogger) and path.suffix == ".png":
+                import matplotlib.image as mpimg
+
+                image = mpimg.imread(path)[..., :3]  # H W C floats in [0, 1]
+                backend.experiment.add_image(path.stem, image, dataformats="HWC")

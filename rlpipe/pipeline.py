@@ -18,12 +18,13 @@ from rlpipe.checkpoint import fitting, prune_checkpoints
 from rlpipe.config import RUN_KEYS, Config
 from rlpipe.envs import make_env
 from rlpipe.episodes import eval_envs
-from rlpipe.loggers import make_logger
+from rlpipe.loggers import make_logger, run_card
 from rlpipe.metrics import truncate_metrics
 from rlpipe.models import object_record
 from rlpipe.rundir import (
     CONFIG_FILE,
     check_same_run,
+    hydra_overrides,
     lock_run_dir,
     resume_state,
     save_config,
@@ -100,6 +101,7 @@ def _train_locked(
             run_dir,
             **{key: getattr(cfg, key) for key in RUN_KEYS},
             keep_checkpoints=cfg.keep_checkpoints,
+            log_every=cfg.log_every,
             callbacks=make_callbacks(cfg),  # before the logger: a bad video setting writes nothing
             progress=cfg.progress,
             config=cfg,  # config.yaml, and in every checkpoint
@@ -118,7 +120,8 @@ def _train_locked(
             raise unwritable(run_dir, err) from err
         if on_start is not None:
             on_start(run_dir)
-        runner.logger = make_logger(cfg.logger, run_dir)
+        card = run_card(cfg, hydra_overrides(run_dir))  # name, tags, hyper-parameters
+        runner.logger = make_logger(cfg.logger, run_dir, card)
         return runner.run()
     finally:
         algo.close()

@@ -37,6 +37,7 @@ LOCK_FILE = ".lock"
 NOT_FINGERPRINTED = (
     *RUN_KEYS,
     "keep_checkpoints",
+    "log_every",
     "progress",
     "video",
     "threads",
@@ -309,11 +310,15 @@ def load_run(
     return LoadedRun(cfg, algo, path)
 
 
+def hydra_overrides(run_dir: str | Path) -> list[str]:
+    """The command-line overrides the run was started with (Hydra's record; none from Python)."""
+    path = Path(run_dir) / ".hydra" / "overrides.yaml"
+    return [str(o) for o in OmegaConf.load(path)] if path.is_file() else []
+
+
 def original_command(run_dir: str | Path) -> str:
     """``python -m rlpipe <the overrides the run was started with>`` (from Hydra's record)."""
-    path = Path(run_dir) / ".hydra" / "overrides.yaml"
-    overrides = OmegaConf.load(path) if path.is_file() else []
-    return " ".join(["python -m rlpipe", *map(str, overrides)])
+    return " ".join(["python -m rlpipe", *hydra_overrides(run_dir)])
 
 
 def resume_state(

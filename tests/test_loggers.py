@@ -202,3 +202,76 @@ def test_training_on_a_full_disk_fails_with_one_line(tmp_path: Path, rlpipe_cli)
         f"rlpipe: error: cannot write metrics in {run_dir}: No space left on device; free some "
         "disk space or pick a writable hydra.run.dir, then resume"
     ]
+
+
+TRACKED = ["total_frames=400", "eval_every=200", "eval_episodes=2", "algo.lr=3e-4", "log_every=100"]
+
+
+def _tracked_run(rlpipe_cli, tmp_path: Path, backend: str) -> Path:
+    """A tiny CLI run with ``logger=<backend>``; its run dir."""
+    run_dir = tmp_path / "run"
+    done = rlpipe_cli("progress=false", f"logger={backend}", *TRACKED, run_dir=run_dir)
+    assert done.returncode == 0, done.stderr
+    return run_dir
+
+
+def test_tensorboard_holds_the_config_name_curve_and_loss_cadence(tmp_path, rlpipe_cli) -> None:
+    pytest.importorskip("tensorboard")
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+    from tensorboard.plugins.hparams import plugin_data_pb2
+
+    run_dir = _tracked_run(rlpipe_cli, tmp_path, "tensorboard")
+    (folder,) = (run_dir / "tensorboard").iterdir()
+    assert folder.name == "dqn_CartPole-v1_seed=0_algo.lr=3e-4_"  # named by what decides it
+    hparams, images, loss_steps = {}, [], []
+    for events in folder.rglob("events.out.tfevents.*"):
+        acc = EventAccumulator(str(events.parent), size_guidance={"tensors": 0, "images": 0})
+        acc.Reload()
+        try:
+            contents = acc.PluginTagToContent("hparams").values()
+        except KeyError:  # an events file without hparams (the scalars')
+            contents = []
+        for raw in contents:
+            data = plugin_data_pb2.HParamsPluginData.FromString(raw)
+            if data.HasField("session_start_info"):
+                hparams.update(data.session_start_info.hparams)
+        images += acc.Tags()["images"]
+        if "train/loss" in acc.Tags()["scalars"]:
+            loss_steps = [e.step for e in acc.Scalars("train/loss")]
+    assert hparams["algo.lr"].number_value == pytest.approx(3e-4)
+    assert hparams["env.id"].string_value == "CartPole-v1" and "seed" in hparams
+    assert images == ["curve"]  # curve.png, as an image
+    # log_every=100: a loss row every ~100 frames once updates start (not every 1,000)
+    assert len(loss_steps) >= 2 and max(b - a for a, b in zip(loss_steps, loss_steps[1:])) <= 104
+
+
+def test_mlflow_holds_the_config_name_tags_and_files(tmp_path, rlpipe_cli) -> None:
+    pytest.importorskip("mlflow")
+    import mlflow
+
+    run_dir = _tracked_run(rlpipe_cli, tmp_path, "mlflow")
+    client = mlflow.MlflowClient(f"sqlite:///{run_dir / 'mlflow.db'}")
+    (run,) = client.search_runs([client.get_experiment_by_name("rlpipe").experiment_id])
+    assert run.data.params["algo.lr"] == "0.0003" and run.data.params["env.id"] == "CartPole-v1"
+    assert run.data.tags["mlflow.runName"] == "dqn CartPole-v1 seed=0 [algo.lr=3e-4]"
+    assert (run.data.tags["algo"], run.data.tags["seed"]) == ("dqn", "0")
+    assert [a.path for a in client.list_artifacts(run.info.run_id)] == ["curve.png"]
+
+
+def test_wandb_holds_the_config_name_tags_and_files(tmp_path, rlpipe_cli) -> None:
+    pytest.importorskip("wandb")
+    import shutil
+    import subprocess
+
+    run_dir = _tracked_run(rlpipe_cli, tmp_path, "wandb")  # offline: under run_dir/wandb
+    (log,) = (run_dir / "wandb").glob("offline-run-*/run-*.wandb")
+    wandb_cli = shutil.which("wandb")
+    assert wandb_cli is not None
+    # W&B's own reader of a run's transaction log (records as text when not on a terminal)
+    text = subprocess.run(
+        [wandb_cli, "leet", "inspect", str(log)], capture_output=True, text=True, timeout=120
+    ).stdout
+    assert 'display_name:  "dqn CartPole-v1 seed=0 [algo.lr=3e-4]"' in text
+    assert 'tags:  "algo:dqn"' in text and 'tags:  "seed:0"' in text
+    assert 'key:  "algo.lr"\n      value_json:  "0.0003"' in text
+    assert 'path:  "curve.png"' in text
