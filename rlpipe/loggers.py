@@ -10,6 +10,7 @@ videos, where they take video) on top.
 from __future__ import annotations
 
 import importlib
+import os
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -227,6 +228,8 @@ def make_logger(
     """
     if cfg.backend == "none":
         return None
+    if cfg.backend == "mlflow":  # before its import: its INFO lines go to the run's log file
+        os.environ.setdefault("MLFLOW_CONFIGURE_LOGGING", "false")
     if cfg.backend != "csv":
         require_extra(cfg.backend, f"logger={cfg.backend}")
     run_dir = Path(run_dir).absolute()

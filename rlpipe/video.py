@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import sys
+import tempfile
 import warnings
 from pathlib import Path
 
@@ -23,6 +24,8 @@ VIDEO_DIR = "videos"
 def make_render_env(cfg: EnvConfig, seed: int | None = None) -> EnvBase:
     """One copy of ``cfg`` that renders ``rgb_array`` frames; a clear error if it cannot."""
     os.environ.setdefault("SDL_AUDIODRIVER", "dummy")  # pygame-drawn envs: no sound card noise
+    if not os.environ.get("XDG_RUNTIME_DIR"):  # else SDL prints an error line about it
+        os.environ["XDG_RUNTIME_DIR"] = tempfile.mkdtemp(prefix="rlpipe-runtime-")
     with warnings.catch_warnings():  # gymnasium warns about unknown render modes; we say it once
         warnings.simplefilter("ignore")
         env = make_env(cfg, num_envs=1, seed=seed, render_mode="rgb_array")
