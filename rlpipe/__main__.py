@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import re
 import sys
+from dataclasses import replace
 from functools import partial
 from pathlib import Path
 
@@ -38,7 +39,12 @@ def _hydra_main(cfg: DictConfig) -> float | None:
     run_dir = hydra_cfg.runtime.output_dir
 
     def job() -> RunResult:
-        return train(to_config(cfg), run_dir, on_start=partial(write_hydra_record, job_cfg=cfg))
+        config = to_config(cfg)
+        if "BasicLauncher" not in hydra_cfg.launcher.get("_target_", "BasicLauncher"):
+            # jobs in parallel processes (joblib, submitit) would draw over each other's bars:
+            # each prints its summary line instead
+            config = replace(config, progress=False)
+        return train(config, run_dir, on_start=partial(write_hydra_record, job_cfg=cfg))
 
     if hydra_cfg.mode == RunMode.MULTIRUN:
         # exiting would end the whole sweep: the failure is recorded and the other jobs run

@@ -115,10 +115,13 @@ def test_composition_error_keeps_its_reason():
 
 def test_joblib_launcher_runs_jobs_in_parallel_processes(tmp_path):
     pytest.importorskip("hydra_plugins.hydra_joblib_launcher")
+    with_bars = [arg for arg in FAST if arg != "progress=false"]
     proc, sweep = run_sweep(
-        tmp_path, "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", *FAST, *ONE_FAILS
+        tmp_path, "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", *with_bars, *ONE_FAILS
     )
     assert proc.returncode == 1, proc.stderr
+    # parallel jobs draw no progress bars over each other: each prints its summary line
+    assert "frame/s" not in proc.stderr + proc.stdout and "rlpipe: final eval" in proc.stdout
     rows = read_csv(sweep / "summary.csv")
     assert [r["status"] for r in rows] == ["ok", "failed"]
     assert rows[1]["error"] == "algo.lr must be > 0, got -1.0"
