@@ -9,11 +9,22 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 import torch
 from tensordict import NestedKey, TensorDictBase
-from tensordict.nn import TensorDictModuleBase
+from tensordict.nn import (
+    AddStateIndependentNormalScale,
+    NormalParamExtractor,
+    TensorDictModuleBase,
+    TensorDictSequential,
+    add_custom_mapping,
+)
 from torch import nn
-from torchrl.modules import MLP
+from torchrl.data import Bounded
+from torchrl.envs import EnvBase
+from torchrl.modules import MLP, IndependentNormal, ProbabilisticActor
 
+from rlpipe.envs import is_discrete, num_actions, observation_size
 from rlpipe.errors import RlpipeError, check
+
+add_custom_mapping("sigmoid", torch.sigmoid)  # the REINFORCE notebook's std in (0, 1)
 
 
 def mlp(in_features: int, out_features: int, hidden_sizes: Sequence[int]) -> nn.Module:
@@ -47,6 +58,67 @@ class TensorModule(TensorDictModuleBase):
         for key, value in zip(self.out_keys, outs, strict=True):
             tensordict.set(key, value)
         return tensordict
+
+
+# how a Gaussian policy gets its std: "sigmoid": the network's second half of outputs through a
+# sigmoid, in (0, 1) (the REINFORCE notebook's); "free": one trained log-std per action dimension,
+# whatever the observation (PPO's, as SB3's)
+SCALES = ("sigmoid", "free")
+
+
+def make_policy(
+    env: EnvBase,
+    network: Callable[[int, int, str], nn.Module],
+    *,
+    scale: str = "sigmoid",
+    algo: str = "this algorithm",
+) -> tuple[TensorDictModuleBase, ProbabilisticActor, str]:
+    """The stochastic policy, its distribution module and the key holding what its
+    log-probability is taken of; ``network(in_features, out_features, outputs)`` builds its
+    network; ``algo`` names the algorithm in errors.
+
+    Discrete actions: a Categorical over logits, sampled into ``action``. Box actions: a
+    Gaussian with a mean per dimension and a std as ``scale`` says; the raw sample goes to
+    ``sample`` (the policy gradient's variable) and ``action`` is that sample clipped into the
+    bounds. In deterministic mode: the argmax, or the clipped mean.
+    """
+    spec = env.action_spec_unbatched
+    n_obs = observation_size(env)
+    if is_discrete(env):
+        net = network(n_obs, num_actions(env), "one logit per action")
+        module = TensorModule(net, ["observation"], ["logits"])
+        actor = ProbabilisticActor(
+            module,
+            in_keys=["logits"],
+            spec=spec,
+            distribution_class=torch.distributions.Categorical,
+        )
+        return actor, actor, "action"
+    if not isinstance(spec, Bounded) or not spec.dtype.is_floating_point or len(spec.shape) != 1:
+        raise RlpipeError(
+            f"{algo}'s policy needs discrete actions or a bounded flat box of continuous "
+            f"actions, but this env's actions are {type(spec).__name__} of shape "
+            f"{tuple(spec.shape)}"
+        )
+    size = spec.shape[0]
+    if scale == "sigmoid":
+        outputs = f"a mean and a pre-sigmoid std per action dimension ({size}), in that order"
+        head = NormalParamExtractor(scale_mapping="sigmoid")
+        net = nn.Sequential(network(n_obs, 2 * size, outputs), head)
+    else:
+        net = network(n_obs, size, f"a mean per action dimension ({size})")
+        net = nn.Sequential(net, AddStateIndependentNormalScale(size, scale_mapping="exp"))
+    module = TensorModule(net, ["observation"], ["loc", "scale"])
+    actor = ProbabilisticActor(
+        module,
+        in_keys=["loc", "scale"],
+        out_keys=["sample"],
+        distribution_class=IndependentNormal,
+        distribution_kwargs={"upscale": 1.0},
+        return_log_prob=False,
+    )
+    clip = ClampAction(spec.space.low, spec.space.high)
+    return TensorDictSequential(actor, TensorModule(clip, ["sample"], ["action"])), actor, "sample"
 
 
 def instantiate(spec: Mapping[str, Any], what: str, **sizes: int) -> Any:

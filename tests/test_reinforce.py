@@ -15,13 +15,13 @@ from tensordict import TensorDict
 from torchrl.envs import ExplorationType, set_exploration_type
 
 from rlpipe.algos import Reinforce, ReinforceConfig
-from rlpipe.algos.reinforce import collect_episodes, make_policy, normalized_returns
+from rlpipe.algos.reinforce import collect_episodes, normalized_returns
 from rlpipe.checkpoint import load_checkpoint, save_checkpoint
 from rlpipe.config import EnvConfig
 from rlpipe.envs import make_env
 from rlpipe.episodes import evaluate
 from rlpipe.errors import RlpipeError
-from rlpipe.models import mlp
+from rlpipe.models import make_policy, mlp
 from rlpipe.runner import Runner
 
 CONTINUOUS = EnvConfig(id="rlpipe/CartPoleContinuous-v0", num_envs=4, max_episode_steps=50)
@@ -46,7 +46,7 @@ def test_returns_are_discounted_and_normalised_per_episode():
 
 def test_collects_exactly_the_asked_whole_episodes():
     env = make_env(CONTINUOUS, seed=0)
-    policy, _ = make_policy(env, mlp_of())
+    policy, _, _ = make_policy(env, mlp_of())
     batch, frames = collect_episodes(policy, env, 10)
     done = batch["next", "done"].squeeze(-1)
     assert int(done.sum()) == 10 and bool(done[-1])
@@ -58,7 +58,7 @@ def test_collects_exactly_the_asked_whole_episodes():
 
 def test_gaussian_actions_stay_in_bounds_and_greedy_is_the_clipped_mean():
     env = make_env(CONTINUOUS, seed=0)
-    policy, key = make_policy(env, mlp_of())
+    policy, _, key = make_policy(env, mlp_of())
     assert key == "sample"
     linear = next(m for m in policy.modules() if isinstance(m, torch.nn.Linear))
     with torch.no_grad():
@@ -74,7 +74,7 @@ def test_gaussian_actions_stay_in_bounds_and_greedy_is_the_clipped_mean():
 
 def test_categorical_policy_for_discrete_actions():
     env = make_env(EnvConfig(id="rlpipe/CartPoleNoop-v0", num_envs=3), seed=0)
-    policy, key = make_policy(env, mlp_of(8))
+    policy, _, key = make_policy(env, mlp_of(8))
     assert key == "action"
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         td = policy(env.reset())

@@ -4,32 +4,23 @@ optionally, a learned state-value baseline whose targets TorchRL's TD(1) estimat
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import (
-    NormalParamExtractor,
     TensorDictModuleBase,
-    TensorDictSequential,
-    add_custom_mapping,
 )
-from torch import nn
-from torchrl.data import Bounded
 from torchrl.envs import EnvBase, ExplorationType, set_exploration_type
-from torchrl.modules import IndependentNormal, ProbabilisticActor
 from torchrl.objectives.value import TD1Estimator
 from torchrl.objectives.value.functional import reward2go
 
 from rlpipe.algos.base import LOSS, EnvAlgorithm, Metrics, episode_metrics
 from rlpipe.config import AlgoConfig, checked
-from rlpipe.envs import is_discrete, num_actions, observation_size
+from rlpipe.envs import observation_size
 from rlpipe.episodes import episode_quotas
-from rlpipe.errors import RlpipeError
-from rlpipe.models import ClampAction, TensorModule, mlp
+from rlpipe.models import TensorModule, make_policy, mlp
 
-add_custom_mapping("sigmoid", torch.sigmoid)  # the notebook's std in (0, 1)
 _EPS = torch.finfo(torch.float32).eps
 
 
@@ -55,51 +46,6 @@ class ReinforceConfig(AlgoConfig):
     baseline: str = checked("none", choices=BASELINES)
     value_hidden_sizes: list[int] = checked([64], "sizes")  # V(s)'s network
     value_lr: float = checked(1e-2, "positive")  # V(s)'s Adam learning rate (same weight decay)
-
-
-def make_policy(
-    env: EnvBase, network: Callable[[int, int, str], nn.Module]
-) -> tuple[TensorDictModuleBase, str]:
-    """The stochastic policy and the key holding what its log-probability is taken of;
-    ``network(in_features, out_features, outputs)`` builds its network.
-
-    Discrete actions: a Categorical over logits, sampled into ``action``. Box actions: a
-    Gaussian with a mean and a sigmoid std in (0, 1) per dimension, as the notebook's; the raw
-    sample goes to ``sample`` (the policy gradient's variable) and ``action`` is that sample
-    clipped into the bounds. In deterministic mode: the argmax, or the clipped mean.
-    """
-    spec = env.action_spec_unbatched
-    n_obs = observation_size(env)
-    if is_discrete(env):
-        net = network(n_obs, num_actions(env), "one logit per action")
-        module = TensorModule(net, ["observation"], ["logits"])
-        actor = ProbabilisticActor(
-            module,
-            in_keys=["logits"],
-            spec=spec,
-            distribution_class=torch.distributions.Categorical,
-        )
-        return actor, "action"
-    if not isinstance(spec, Bounded) or not spec.dtype.is_floating_point or len(spec.shape) != 1:
-        raise RlpipeError(
-            f"REINFORCE's policy needs discrete actions or a bounded flat box of continuous "
-            f"actions, but this env's actions are {type(spec).__name__} of shape "
-            f"{tuple(spec.shape)}"
-        )
-    outputs = f"a mean and a pre-sigmoid std per action dimension ({spec.shape[0]}), in that order"
-    net = nn.Sequential(
-        network(n_obs, 2 * spec.shape[0], outputs), NormalParamExtractor(scale_mapping="sigmoid")
-    )
-    module = TensorModule(net, ["observation"], ["loc", "scale"])
-    actor = ProbabilisticActor(
-        module,
-        in_keys=["loc", "scale"],
-        out_keys=["sample"],
-        distribution_class=IndependentNormal,
-        distribution_kwargs={"upscale": 1.0},
-    )
-    clip = ClampAction(spec.space.low, spec.space.high)
-    return TensorDictSequential(actor, TensorModule(clip, ["sample"], ["action"])), "sample"
 
 
 def normalized_returns(batch: TensorDictBase, gamma: float) -> torch.Tensor:
@@ -163,9 +109,10 @@ class Reinforce(EnvAlgorithm):
     def _build(self, env: EnvBase) -> None:
         cfg = self.cfg
         self.budget = cfg.epochs
-        self.policy, self._sample_key = make_policy(env, self.network)
+        self.policy, self._actor, self._sample_key = make_policy(
+            env, self.network, algo="REINFORCE"
+        )
         self.policy.to(self.device)
-        self._actor = self.policy if self._sample_key == "action" else self.policy[0]
         groups = [{"params": list(self.policy.parameters())}]
         self.value: TensorModule | None = None
         self.state_attrs = ("policy", "optimizer")
