@@ -11,6 +11,7 @@ Configs (dataclasses; bad values raise RlpipeError on construction):
     ReinforceConfig  REINFORCE's hyper-parameters, run length and cadence
     ARSConfig        ARS's hyper-parameters, run length and cadence
     MBRLConfig       model-based RL's hyper-parameters, run length and cadence
+    PPOConfig        PPO's hyper-parameters, run length and cadence
 
 Building and running:
     train            the whole pipeline from a Config into a run dir; returns a RunResult
@@ -22,6 +23,7 @@ Building and running:
     Reinforce        REINFORCE, Monte-Carlo policy gradient (discrete or continuous)
     ARS              augmented random search, the runner's algorithm around an ARSSearch
     MBRL             model-based RL: a learned model and a planner
+    PPO              proximal policy optimisation, clipped, with GAE
     Algorithm        the protocol the Runner drives (isinstance checks it)
     Runner           the one training loop: evaluations, metrics, checkpoints, summary.json
     RunResult        what a run reports: eval mean and std, frames, wall time, run dir
@@ -56,6 +58,8 @@ from rlpipe.algos import (
     ARSConfig,
     DQNConfig,
     MBRLConfig,
+    PPO,
+    PPOConfig,
     Reinforce,
     ReinforceConfig,
     make_algorithm,
@@ -95,6 +99,8 @@ __all__ = [
     "MBRL",
     "MBRLConfig",
     "Normalizer",
+    "PPO",
+    "PPOConfig",
     "Reinforce",
     "ReinforceConfig",
     "RlpipeError",

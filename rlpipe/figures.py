@@ -131,8 +131,9 @@ def plot_groups(
     svg: bool = False,
     title: str | None = None,
 ) -> list[Path]:
-    """One line per group (``aggregate`` over its seeds) with a 95% bootstrap band; one panel
-    per env when the groups span several, each titled by its env and algorithm(s)."""
+    """Draw one line per group (``aggregate`` over its seeds) with a 95% bootstrap band.
+
+    One panel per env when the groups span several, each titled by its env and algorithm(s)."""
     fig = groups_figure(groups, metric=metric, aggregate=aggregate, title=title)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

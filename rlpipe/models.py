@@ -27,13 +27,19 @@ from rlpipe.errors import RlpipeError, check
 add_custom_mapping("sigmoid", torch.sigmoid)  # the REINFORCE notebook's std in (0, 1)
 
 
-def mlp(in_features: int, out_features: int, hidden_sizes: Sequence[int]) -> nn.Module:
-    """A ReLU multi-layer perceptron with the given hidden layer sizes (may be empty: linear)."""
+def mlp(
+    in_features: int,
+    out_features: int,
+    hidden_sizes: Sequence[int],
+    activation: type[nn.Module] = nn.ReLU,
+) -> nn.Module:
+    """A multi-layer perceptron (ReLU unless ``activation``) with the given hidden layer sizes
+    (may be empty: linear)."""
     return MLP(
         in_features=in_features,
         out_features=out_features,
         num_cells=list(hidden_sizes),
-        activation_class=nn.ReLU,
+        activation_class=activation,
     )
 
 
@@ -71,11 +77,13 @@ def make_policy(
     network: Callable[[int, int, str], nn.Module],
     *,
     scale: str = "sigmoid",
+    log_prob: bool = False,
     algo: str = "this algorithm",
 ) -> tuple[TensorDictModuleBase, ProbabilisticActor, str]:
     """The stochastic policy, its distribution module and the key holding what its
     log-probability is taken of; ``network(in_features, out_features, outputs)`` builds its
-    network; ``algo`` names the algorithm in errors.
+    network; ``log_prob``: the sampling policy also writes the sample's log-probability (PPO's
+    old policy); ``algo`` names the algorithm in errors.
 
     Discrete actions: a Categorical over logits, sampled into ``action``. Box actions: a
     Gaussian with a mean per dimension and a std as ``scale`` says; the raw sample goes to
@@ -92,6 +100,7 @@ def make_policy(
             in_keys=["logits"],
             spec=spec,
             distribution_class=torch.distributions.Categorical,
+            return_log_prob=log_prob,
         )
         return actor, actor, "action"
     if not isinstance(spec, Bounded) or not spec.dtype.is_floating_point or len(spec.shape) != 1:
@@ -115,7 +124,7 @@ def make_policy(
         out_keys=["sample"],
         distribution_class=IndependentNormal,
         distribution_kwargs={"upscale": 1.0},
-        return_log_prob=False,
+        return_log_prob=log_prob,
     )
     clip = ClampAction(spec.space.low, spec.space.high)
     return TensorDictSequential(actor, TensorModule(clip, ["sample"], ["action"])), actor, "sample"

@@ -12,6 +12,7 @@ from rlpipe.algos.ars import ARS, ARSConfig
 from rlpipe.algos.base import Algorithm, Metrics
 from rlpipe.algos.dqn import DQN, DQNConfig
 from rlpipe.algos.mbrl import MBRL, MBRLConfig
+from rlpipe.algos.ppo import PPO, PPOConfig
 from rlpipe.algos.reinforce import Reinforce, ReinforceConfig
 from rlpipe.envs import EnvFactory
 from rlpipe.errors import check_choice
@@ -26,6 +27,8 @@ __all__ = [
     "DQNConfig",
     "MBRL",
     "MBRLConfig",
+    "PPO",
+    "PPOConfig",
     "Reinforce",
     "ReinforceConfig",
     "make_algorithm",
@@ -37,6 +40,7 @@ ALGORITHMS: dict[str, tuple[type, Callable[..., Algorithm]]] = {
     "reinforce": (ReinforceConfig, Reinforce),
     "ars": (ARSConfig, ARS),
     "mbrl": (MBRLConfig, MBRL),
+    "ppo": (PPOConfig, PPO),
 }
 
 

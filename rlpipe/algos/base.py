@@ -109,6 +109,7 @@ class EnvAlgorithm:
     finite_keys: ClassVar[tuple[str, ...]] = (LOSS,)
     state_attrs: ClassVar[tuple[str, ...]] = ()
     budget: int | None = None  # frames only: the run's total_frames
+    activation: ClassVar[type[nn.Module]] = nn.ReLU  # of the default MLPs
     frame_limit: int | None = None  # the runner sets its total_frames: collect no further
     divergence_hint = "try a smaller algo.lr"
 
@@ -146,7 +147,9 @@ class EnvAlgorithm:
             out_features=out_features,
             outputs=outputs,
         )
-        return given if given is not None else mlp(in_features, out_features, self.cfg.hidden_sizes)
+        if given is not None:
+            return given
+        return mlp(in_features, out_features, self.cfg.hidden_sizes, self.activation)
 
     def make_collector(
         self, env: EnvBase, policy: TensorDictModuleBase, frames_per_batch: int

@@ -1,0 +1,148 @@
+"""PPO assembled from TorchRL parts: a ProbabilisticActor and a ValueOperator, the Collector on the
+batched env, GAE advantages and ClipPPOLoss over minibatch epochs."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.envs import EnvBase
+from torchrl.modules import ValueOperator
+from torchrl.objectives import ClipPPOLoss
+from torchrl.objectives.value import GAE
+
+from rlpipe.algos.base import LOSS, EnvAlgorithm, Metrics, episode_metrics
+from rlpipe.config import AlgoConfig, checked
+from rlpipe.envs import observation_size
+from rlpipe.errors import check
+from rlpipe.models import make_policy, mlp
+from rlpipe.normalizer import Normalizer
+
+
+@dataclass
+class PPOConfig(AlgoConfig):
+    """PPO hyper-parameters; the defaults are SB3's."""
+
+    name: str = "ppo"
+    total_frames: int | None = 100_000  # PPO has no budget of its own: the run's length
+    eval_every: int = 10_000
+    hidden_sizes: list[int] = checked([64, 64], "sizes")  # actor's and critic's (tanh MLPs)
+    lr: float = checked(3e-4, "positive")
+    anneal_lr: bool = False  # linearly to 0 over algo.total_frames
+    frames_per_batch: int = checked(2048, "at_least_one")  # one rollout (across all env copies)
+    epochs: int = checked(10, "at_least_one")  # passes over each rollout
+    minibatch_size: int = checked(64, "at_least_one")
+    gamma: float = checked(0.99, "discount")
+    gae_lambda: float = checked(0.95, "discount")
+    clip_epsilon: float = 0.2
+    entropy_coef: float = checked(0.0, "non_negative")
+    critic_coef: float = checked(0.5, "positive")
+    max_grad_norm: float = checked(0.5, "positive")
+    normalize_observations: bool = False  # a running mean/std in front of actor and critic
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        check(
+            self.clip_epsilon > 0,
+            f"algo.clip_epsilon must be > 0 (the ratio's clip range), got {self.clip_epsilon}",
+        )
+        check(
+            self.minibatch_size <= self.frames_per_batch,
+            f"algo.minibatch_size ({self.minibatch_size}) must be <= algo.frames_per_batch "
+            f"({self.frames_per_batch}), the frames of one rollout",
+        )
+
+
+class PPO(EnvAlgorithm):
+    """Proximal policy optimisation (clipped) on a batched TorchRL env, discrete or continuous.
+
+    Each :meth:`train_step` collects ``cfg.frames_per_batch`` frames with the sampling policy
+    (rounded up to whole steps of the env's copies), computes GAE advantages and value targets
+    with the critic, then runs ``cfg.epochs`` passes of Adam steps over shuffled minibatches of
+    ``cfg.minibatch_size`` frames on TorchRL's ClipPPOLoss (gradient norm clipped at
+    ``cfg.max_grad_norm``). Continuous actions: a Gaussian with a free log-std per dimension,
+    clipped into the bounds. ``network`` (or ``cfg.network``): the actor's network.
+    """
+
+    cfg: PPOConfig
+    state_attrs = ("loss", "optimizer", "normalizer")
+    activation = torch.nn.Tanh  # SB3's and the PPO paper's
+
+    def _build(self, env: EnvBase) -> None:
+        cfg, device = self.cfg, self.device
+        self.normalizer = Normalizer(observation_size(env))  # the identity unless observed
+        self.policy, actor, sample_key = make_policy(
+            env, self._normalized, scale="free", log_prob=True, algo="PPO"
+        )
+        critic = ValueOperator(
+            self._normalized(observation_size(env), 1, "the state's value", critic=True),
+            in_keys=["observation"],
+        )
+        self.loss = ClipPPOLoss(
+            actor,
+            critic,
+            clip_epsilon=cfg.clip_epsilon,
+            entropy_coeff=cfg.entropy_coef,
+            critic_coeff=cfg.critic_coef,
+            loss_critic_type="l2",
+            normalize_advantage=True,
+        )
+        self.loss.set_keys(action=sample_key)
+        self.loss.to(device)
+        self.policy.to(device)
+        self.advantage = GAE(
+            gamma=cfg.gamma, lmbda=cfg.gae_lambda, value_network=critic, average_gae=False
+        )
+        self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=cfg.lr, eps=1e-5)
+        self.make_collector(env, self.policy, cfg.frames_per_batch)
+
+    def _normalized(
+        self, in_features: int, out_features: int, outputs: str, *, critic: bool = False
+    ) -> torch.nn.Module:
+        """The normaliser, then the actor's network (yours, or a tanh MLP) or the critic's."""
+        if critic:
+            net = mlp(in_features, out_features, self.cfg.hidden_sizes, self.activation)
+        else:
+            net = self.network(in_features, out_features, outputs)
+        return torch.nn.Sequential(self.normalizer, net)
+
+    def train_step(self) -> Metrics:
+        batch = self.collect()
+        self.frames += batch.numel()
+        self.iterations += 1
+        if self.cfg.anneal_lr and self.cfg.total_frames:
+            left = max(1.0 - self.frames / self.cfg.total_frames, 0.0)
+            for group in self.optimizer.param_groups:
+                group["lr"] = self.cfg.lr * left
+        with torch.no_grad():
+            self.advantage(batch)
+        data = batch.reshape(-1)
+        losses = []
+        for _ in range(self.cfg.epochs):
+            for index in torch.randperm(len(data), device=self.device).split(
+                self.cfg.minibatch_size
+            ):
+                loss = self._loss(data[index])
+                self.optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                torch.nn.utils.clip_grad_norm_(self.loss.parameters(), self.cfg.max_grad_norm)
+                self.optimizer.step()
+                losses.append(loss.detach())
+        if self.cfg.normalize_observations:  # after the epochs: they saw what the rollout saw
+            self.normalizer.observe(batch["observation"])
+        self.collector.update_policy_weights_()
+        metrics: Metrics = {LOSS: float(torch.stack(losses).mean())}
+        metrics.update(episode_metrics(batch))
+        return metrics
+
+    def _loss(self, minibatch: TensorDictBase) -> torch.Tensor:
+        out = self.loss(minibatch)
+        return out["loss_objective"] + out["loss_critic"] + out.get("loss_entropy", 0.0)
+
+    def _restored(self) -> None:
+        self.collector.update_policy_weights_()
+
+    def close(self) -> None:
+        """Stop the collector and close its env."""
+        self.collector.shutdown()
