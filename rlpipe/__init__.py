@@ -12,6 +12,7 @@ Configs (dataclasses; bad values raise RlpipeError on construction):
     ARSConfig        ARS's hyper-parameters, run length and cadence
     MBRLConfig       model-based RL's hyper-parameters, run length and cadence
     PPOConfig        PPO's hyper-parameters, run length and cadence
+    SACConfig        SAC's hyper-parameters, run length and cadence
 
 Building and running:
     train            the whole pipeline from a Config into a run dir; returns a RunResult
@@ -24,6 +25,7 @@ Building and running:
     ARS              augmented random search, the runner's algorithm around an ARSSearch
     MBRL             model-based RL: a learned model and a planner
     PPO              proximal policy optimisation, clipped, with GAE
+    SAC              soft actor-critic: twin Q, automatic entropy tuning
     Algorithm        the protocol the Runner drives (isinstance checks it)
     Runner           the one training loop: evaluations, metrics, checkpoints, summary.json
     RunResult        what a run reports: eval mean and std, frames, wall time, run dir
@@ -54,14 +56,16 @@ from rlpipe.algos import (
     ARS,
     DQN,
     MBRL,
+    PPO,
     Algorithm,
     ARSConfig,
     DQNConfig,
     MBRLConfig,
-    PPO,
     PPOConfig,
     Reinforce,
     ReinforceConfig,
+    SAC,
+    SACConfig,
     make_algorithm,
 )
 from rlpipe.algos.ars import ARSSearch
@@ -105,6 +109,8 @@ __all__ = [
     "ReinforceConfig",
     "RlpipeError",
     "RunResult",
+    "SAC",
+    "SACConfig",
     "Runner",
     "evaluate",
     "find_runs",

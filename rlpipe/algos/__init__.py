@@ -14,6 +14,7 @@ from rlpipe.algos.dqn import DQN, DQNConfig
 from rlpipe.algos.mbrl import MBRL, MBRLConfig
 from rlpipe.algos.ppo import PPO, PPOConfig
 from rlpipe.algos.reinforce import Reinforce, ReinforceConfig
+from rlpipe.algos.sac import SAC, SACConfig
 from rlpipe.envs import EnvFactory
 from rlpipe.errors import check_choice
 
@@ -29,6 +30,8 @@ __all__ = [
     "MBRLConfig",
     "PPO",
     "PPOConfig",
+    "SAC",
+    "SACConfig",
     "Reinforce",
     "ReinforceConfig",
     "make_algorithm",
@@ -41,6 +44,7 @@ ALGORITHMS: dict[str, tuple[type, Callable[..., Algorithm]]] = {
     "ars": (ARSConfig, ARS),
     "mbrl": (MBRLConfig, MBRL),
     "ppo": (PPOConfig, PPO),
+    "sac": (SACConfig, SAC),
 }
 
 

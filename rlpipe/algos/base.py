@@ -169,6 +169,13 @@ class EnvAlgorithm:
             interruptor=self._cut,
         )
         self._batches = iter(self.collector)
+        # on one device the collector steps the very policy; otherwise it holds a copy
+        self._copy_weights = self.device != torch.device(env.device)
+
+    def sync_collector(self) -> None:
+        """After updates: the collector's copy of the policy takes the new weights."""
+        if self._copy_weights:
+            self.collector.update_policy_weights_()
 
     def collect(self, at_most: int | None = None) -> TensorDictBase:
         """The collector's next batch, ``[env copies, steps]``, cut short (whole steps of the

@@ -166,8 +166,6 @@ class DQN(EnvAlgorithm):
         self.make_collector(
             env, TensorDictSequential(self.policy, self.exploration), cfg.frames_per_batch
         )
-        # On one device the collector steps this very policy; otherwise it holds a copy.
-        self._copy_weights = self.device != torch.device(env.device)
 
     def train_step(self) -> Metrics:
         batch = self.collect()
@@ -195,8 +193,7 @@ class DQN(EnvAlgorithm):
             if self._target_cadence.due(self.frames):
                 self.target_updater.step()
             metrics[LOSS] = float(torch.stack(losses).mean())
-        if self._copy_weights:
-            self.collector.update_policy_weights_()
+        self.sync_collector()
         return metrics
 
     def _follow_schedules(self) -> None:

@@ -131,7 +131,7 @@ class PPO(EnvAlgorithm):
                 losses.append(loss.detach())
         if self.cfg.normalize_observations:  # after the epochs: they saw what the rollout saw
             self.normalizer.observe(batch["observation"])
-        self.collector.update_policy_weights_()
+        self.sync_collector()
         metrics: Metrics = {LOSS: float(torch.stack(losses).mean())}
         metrics.update(episode_metrics(batch))
         return metrics
