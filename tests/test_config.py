@@ -93,6 +93,9 @@ PRESET_ENVS = {
     "reinforce_cartpole": "rlpipe/CartPoleContinuous-v0",
     "mbrl_pendulum": "Pendulum-v1",
     "mbrl_cartpole": "rlpipe/CartPoleContinuous-v0",
+    "ppo_cartpole": "CartPole-v1",
+    "sac_pendulum": "Pendulum-v1",
+    "sac_bipedal": "BipedalWalker-v3",
 }
 
 
