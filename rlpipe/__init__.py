@@ -57,6 +57,7 @@ from rlpipe.algos import (
     DQN,
     MBRL,
     PPO,
+    SAC,
     Algorithm,
     ARSConfig,
     DQNConfig,
@@ -64,7 +65,6 @@ from rlpipe.algos import (
     PPOConfig,
     Reinforce,
     ReinforceConfig,
-    SAC,
     SACConfig,
     make_algorithm,
 )

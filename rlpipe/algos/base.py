@@ -25,6 +25,15 @@ Metrics = dict[str, float | list[float]]
 EPISODE_RETURN = "train/episode_return"  # one value per finished training episode
 EPISODE_LENGTH = "train/episode_length"
 LOSS = "train/loss"
+# what a replay buffer keeps of each transition (DQN, SAC)
+TRANSITION_KEYS = (
+    "observation",
+    "action",
+    ("next", "observation"),
+    ("next", "reward"),
+    ("next", "done"),
+    ("next", "terminated"),
+)
 
 
 @runtime_checkable

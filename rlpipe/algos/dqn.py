@@ -13,7 +13,7 @@ from torchrl.envs import EnvBase
 from torchrl.modules import EGreedyModule, QValueActor
 from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate
 
-from rlpipe.algos.base import LOSS, EnvAlgorithm, Metrics, episode_metrics
+from rlpipe.algos.base import LOSS, TRANSITION_KEYS, EnvAlgorithm, Metrics, episode_metrics
 from rlpipe.cadence import Cadence
 from rlpipe.config import AlgoConfig, checked
 from rlpipe.envs import is_discrete, observation_size
@@ -77,16 +77,6 @@ class DQNConfig(AlgoConfig):
             0 <= self.eps_end <= self.eps_start <= 1,
             f"need 0 <= algo.eps_end <= algo.eps_start <= 1, got {self.eps_end}, {self.eps_start}",
         )
-
-
-_STORED_KEYS = (
-    "observation",
-    "action",
-    ("next", "observation"),
-    ("next", "reward"),
-    ("next", "done"),
-    ("next", "terminated"),
-)
 
 
 def epsilon(frames: int, cfg: DQNConfig) -> float:
@@ -172,7 +162,7 @@ class DQN(EnvAlgorithm):
         self.frames += batch.numel()
         self.iterations += 1
         self._follow_schedules()
-        self.buffer.extend(batch.reshape(-1).select(*_STORED_KEYS))
+        self.buffer.extend(batch.reshape(-1).select(*TRANSITION_KEYS))
         metrics: Metrics = {"train/epsilon": float(self.exploration.eps)}
         metrics.update(episode_metrics(batch))
         if len(self.buffer) < max(self.cfg.learning_starts, self.cfg.batch_size):

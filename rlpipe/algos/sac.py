@@ -13,19 +13,10 @@ from torchrl.envs import EnvBase
 from torchrl.modules import MLP, ProbabilisticActor, TanhNormal, ValueOperator
 from torchrl.objectives import SACLoss, SoftUpdate
 
-from rlpipe.algos.base import LOSS, EnvAlgorithm, Metrics, episode_metrics
+from rlpipe.algos.base import LOSS, TRANSITION_KEYS, EnvAlgorithm, Metrics, episode_metrics
 from rlpipe.config import AlgoConfig, checked
 from rlpipe.envs import is_discrete, observation_size
 from rlpipe.errors import RlpipeError, check
-
-_STORED_KEYS = (
-    "observation",
-    "action",
-    ("next", "observation"),
-    ("next", "reward"),
-    ("next", "done"),
-    ("next", "terminated"),
-)
 
 
 @dataclass
@@ -121,7 +112,7 @@ class SAC(EnvAlgorithm):
         batch = self.collect()
         self.frames += batch.numel()
         self.iterations += 1
-        self.buffer.extend(batch.reshape(-1).select(*_STORED_KEYS))
+        self.buffer.extend(batch.reshape(-1).select(*TRANSITION_KEYS))
         metrics: Metrics = episode_metrics(batch)
         if len(self.buffer) < max(self.cfg.learning_starts, self.cfg.batch_size):
             return metrics
