@@ -43,7 +43,13 @@ def list_best(directory: str | Path) -> list[Path]:
     return sorted(Path(directory).glob(BEST_PATTERN))
 
 
-def save_checkpoint(state: dict[str, Any], path: str | Path, keep: int | None = None) -> Path:
+def save_checkpoint(
+    state: dict[str, Any],
+    path: str | Path,
+    keep: int | None = None,
+    *,
+    fault: str = "checkpoint_write",
+) -> Path:
     """Write ``state`` to ``path`` so that ``path`` is never seen half-written.
 
     The data goes to a temporary file in the same directory, is flushed to disk, and is
@@ -56,7 +62,7 @@ def save_checkpoint(state: dict[str, Any], path: str | Path, keep: int | None = 
         path.parent.mkdir(parents=True, exist_ok=True)
         data = io.BytesIO()
         torch.save(state, data)  # in memory first: a failing disk then fails with an OSError
-        write_atomic(path, data.getvalue(), fault="checkpoint_write")
+        write_atomic(path, data.getvalue(), fault=fault)
     except OSError as err:
         raise RlpipeError(
             f"cannot write checkpoint {path}: {err.strerror or err}; free some disk space "
@@ -73,7 +79,7 @@ def prune_checkpoints(directory: str | Path, keep: int) -> None:
     move damaged (or refused) ones to ``damaged/`` with a warning; remove orphan temp files
     (a write that was killed)."""
     directory = Path(directory)
-    for tmp in directory.glob(f".{PATTERN}{TEMP_SUFFIX}"):
+    for tmp in directory.glob(f".*.pt{TEMP_SUFFIX}"):  # of a checkpoint or a best
         tmp.unlink(missing_ok=True)
     kept = 0
     for path in reversed(list_checkpoints(directory)):

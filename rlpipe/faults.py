@@ -14,6 +14,7 @@ import signal
 POINTS = {
     "train_step": "after a training iteration, before its metrics are logged",
     "checkpoint_write": "a checkpoint's temporary file is written, not yet renamed into place",
+    "best_write": "the best evaluation's checkpoint's temporary file is written, not yet renamed",
     "final_checkpoint": "the final checkpoint is written, summary.json not yet",
     "summary": "summary.json's temporary file is written, not yet renamed into place",
     "truncate": "a metrics CSV's trimmed copy is written at resume, not yet renamed into place",

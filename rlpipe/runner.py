@@ -125,6 +125,12 @@ class Runner:
                 return self._finished_before(stored)
         if self.config is not None:
             save_config(self.config, self.run_dir)
+        # a best checkpoint from the part of the run being redone goes, and all but the newest
+        bests = list_best(self.run_dir / "checkpoints")
+        kept = [path for path in bests if _frames(path) <= self.algo.frames]
+        for path in bests:
+            if path not in kept[-1:]:
+                path.unlink()
         if hasattr(self.algo, "frame_limit"):  # it can end its last batch at the budget
             self.algo.frame_limit = self.total_frames
         start = self._start = time.perf_counter() - self._elapsed_before
@@ -255,7 +261,7 @@ class Runner:
         self._best = self.last_eval.mean
         directory = self.run_dir / "checkpoints"
         older = list_best(directory)
-        save_checkpoint(self._state(), best_path(directory, self.algo.frames))
+        save_checkpoint(self._state(), best_path(directory, self.algo.frames), fault="best_write")
         for path in older:
             path.unlink(missing_ok=True)
 
@@ -276,9 +282,6 @@ class Runner:
         self._pending_eval = bool(runner.get("pending_eval", False))
         self._elapsed_at = int(runner.get("elapsed_at", -1))
         self._best = float(runner.get("best_eval", -math.inf))
-        for path in list_best(self.run_dir / "checkpoints"):  # from the part of the run redone
-            if int(path.stem.rpartition("_")[2]) > self.algo.frames:
-                path.unlink()
 
     def _catch_signals(self) -> dict[int, Any]:
         """Route SIGINT/SIGTERM to a flag checked after each iteration (main thread only)."""
@@ -375,6 +378,11 @@ class Runner:
                 f"cannot write metrics in {self.run_dir}: {err.strerror or err}; free some disk "
                 "space or pick a writable hydra.run.dir, then resume"
             ) from err
+
+
+def _frames(checkpoint: Path) -> int:
+    """The frames in a checkpoint's name (``ckpt_<frames>.pt``, ``best_<frames>.pt``)."""
+    return int(checkpoint.stem.rpartition("_")[2])
 
 
 def _all_finite(value: float | list[float]) -> bool:

@@ -15,10 +15,9 @@ def test_default_job_trains_and_writes_its_run_dir(rlpipe_cli, tmp_path):
     assert "final eval" in proc.stdout and str(run) in proc.stdout
     assert json.loads((run / "summary.json").read_text())["frames"] == 200
     assert (run / ".hydra" / "config.yaml").exists()
-    assert sorted(p.name for p in (run / "checkpoints").iterdir()) == [
-        "ckpt_000000000100.pt",
-        "ckpt_000000000200.pt",
-    ]
+    names = sorted(p.name for p in (run / "checkpoints").iterdir())
+    assert names[0].startswith("best_")  # the best evaluation's, beside the newest ones
+    assert names[1:] == ["ckpt_000000000100.pt", "ckpt_000000000200.pt"]
     assert (run / "metrics" / "scalars" / "eval" / "return_mean.csv").exists()
 
 

@@ -28,7 +28,7 @@ import pytest
 import torch
 from conftest import run_module
 
-from rlpipe.checkpoint import load_checkpoint, load_latest
+from rlpipe.checkpoint import list_best, load_checkpoint, load_latest
 
 FAULTS = pytest.mark.faults
 TAG_VAR = "RLPIPE_TEST_TAG"
@@ -105,6 +105,9 @@ CHAINS = {
     # is killed trimming them; the next one finishes and is killed with summary.json's temp file
     # written, not renamed; the clean resume writes it
     "checkpoint_write+truncate+summary": ["checkpoint_write@2", "truncate", "summary"],
+    # killed writing the first best-eval checkpoint (before any checkpoint): the resume starts
+    # at zero, its temporary file goes, and the run ends with one best checkpoint
+    "best_write+final_checkpoint": ["best_write@1", "final_checkpoint"],
 }
 
 # a finished tiny DQN run (checkpoints at 100 and 200): the tampering and ownership share
@@ -259,6 +262,8 @@ def assert_run_intact(run_dir: Path, reference: Reference, *, tag: str | None = 
     assert not temporary, f"temporary files left: {temporary}"
     path, state = load_latest(run_dir / "checkpoints")
     assert state["frames"] == reference.frames, path
+    (best,) = list_best(run_dir / "checkpoints")  # one best-eval checkpoint, of this run
+    assert load_checkpoint(best)["frames"] <= reference.frames
     if tag is not None:
         assert_no_live_processes(tag)
 
@@ -340,7 +345,7 @@ def test_runs_killed_at_fault_points_resume_intact(tmp_path, reference, algo, ch
             assert "SIGTERM" in last and f"resume={run_dir}" in last, result.stderr
             assert "Traceback" not in result.stderr
             load_latest(run_dir / "checkpoints")  # it checkpointed before it stopped
-        if fault.startswith("checkpoint_write"):  # killed with the temporary file written
+        if fault.startswith(("checkpoint_write", "best_write")):  # the temporary file written
             assert list((run_dir / "checkpoints").glob(".*.tmp")), "no checkpoint write killed"
         if fault in ("final_checkpoint", "summary"):  # after the final checkpoint, no summary
             assert load_latest(run_dir / "checkpoints")[1]["frames"] == ref.frames
@@ -372,7 +377,7 @@ def finished_run(tmp_path_factory) -> Path:
     run_dir = tmp_path_factory.mktemp("finished") / "run"
     result = rlpipe(*BASE, f"hydra.run.dir={run_dir}", cwd=run_dir.parent)
     assert result.returncode == 0, result.stderr
-    assert sorted(p.name for p in (run_dir / "checkpoints").glob("*.pt")) == [
+    assert sorted(p.name for p in (run_dir / "checkpoints").glob("ckpt_*.pt")) == [
         "ckpt_000000000100.pt",
         NEWEST,
     ]
