@@ -80,7 +80,7 @@ def seconds_per_iteration(
     )
     saved = backends.chunks_per_worker
     if chunks is not None:  # the chunking of every policy before: small chunks whatever the cost
-        backends.chunks_per_worker = lambda _policy: chunks
+        backends.chunks_per_worker = lambda *_args: chunks
     try:
         search = ARSSearch(
             policy,

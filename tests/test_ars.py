@@ -128,27 +128,36 @@ class _Custom(nn.Module):
 
 
 @pytest.mark.parametrize(
-    ("net", "numpy_only"),
+    "net",
     [
-        (nn.Sequential(nn.Linear(3, 8), nn.LayerNorm(8), nn.Tanh(), nn.Linear(8, 1)), True),
-        (nn.Sequential(nn.Linear(3, 8), nn.LayerNorm(8, bias=False), nn.Linear(8, 1)), True),
-        (nn.Sequential(nn.Linear(3, 8), nn.Softsign(), nn.Linear(8, 1)), False),  # no NumPy twin
-        (_Custom(), False),
+        nn.Sequential(nn.Linear(3, 8), nn.LayerNorm(8), nn.Tanh(), nn.Linear(8, 1)),
+        nn.Sequential(nn.Linear(3, 8), nn.LayerNorm(8, bias=False), nn.Linear(8, 1)),
+        nn.Sequential(nn.Linear(3, 8), nn.Softsign(), nn.Linear(8, 1)),  # no NumPy twin
+        _Custom(),  # through torch.vmap
     ],
     ids=["layernorm", "layernorm-no-bias", "softsign", "custom"],
 )
-def test_population_call_of_any_layer_equals_the_torch_forward(net, numpy_only):
+def test_population_call_of_any_layer_equals_the_torch_forward(net):
     policy = TensorDictModule(net, in_keys=["observation"], out_keys=["action"])
     flat = torch.randn(5, parameters_to_vector(net.parameters()).numel())
     obs = torch.randn(5, 3)
-    population = PopulationPolicy(policy, flat)
-    out = population(TensorDict(observation=obs, batch_size=[5]))
+    out = PopulationPolicy(policy, flat)(TensorDict(observation=obs, batch_size=[5]))
     for i in range(5):
         vector_to_parameters(flat[i], net.parameters())
         assert torch.allclose(net(obs[i]), out["action"][i], atol=1e-5)
-    assert population.numpy_only is numpy_only
-    # workers pull small chunks of a NumPy policy, one chunk each of a policy run through torch
-    assert backends.chunks_per_worker(policy) == (backends.CHUNKS_PER_WORKER if numpy_only else 1)
+
+
+def test_workers_take_fewer_chunks_of_a_policy_that_costs_more_per_call():
+    """Chunks per worker follow the measured costs: a linear policy (NumPy, microseconds a call)
+    gets many small chunks on Pendulum, a module run through torch.vmap one chunk each."""
+    from rlpipe.algos.ars.chunking import MAX_CHUNKS, chunks_per_worker
+
+    factory = partial(make_env, PENDULUM, vectorization="sync")
+    linear, _ = make_ars_policy(make_env(PENDULUM), ARSConfig())
+    custom = TensorDictModule(_Custom(), in_keys=["observation"], out_keys=["action"])
+    fine = chunks_per_worker(linear, factory, population=32, workers=2, seed=0)
+    coarse = chunks_per_worker(custom, factory, population=32, workers=2, seed=0)
+    assert fine > coarse == 1 and fine <= MAX_CHUNKS
 
 
 def test_search_standalone_solves_cartpole_and_tracks_observations():
@@ -190,14 +199,14 @@ def small_search(seed: int, **kwargs) -> ARSSearch:
 
 
 @pytest.mark.parametrize(
-    ("small_work", "here"),
+    ("short", "here"),
     [(0.0, False), (math.inf, True)],
-    ids=["workers-every-iteration", "this-process-once-work-is-small"],
+    ids=["workers-every-iteration", "this-process-timed-too"],
 )
-def test_worker_processes_give_the_same_search_as_one_process(monkeypatch, small_work, here):
+def test_worker_processes_give_the_same_search_as_one_process(monkeypatch, short, here):
     """Each member's episode seed comes from the search, whichever process rolls it out: the
-    workers, or this process after an iteration of small work."""
-    monkeypatch.setattr(backends, "SMALL_WORK_SECONDS", small_work)
+    workers, or this process (timed against the workers when iterations are short)."""
+    monkeypatch.setattr(backends, "SHORT_SECONDS", short)
     thetas, counts = [], []
     for workers in (1, 2):
         search = small_search(seed=5, workers=workers)
@@ -205,8 +214,8 @@ def test_worker_processes_give_the_same_search_as_one_process(monkeypatch, small
             before = search.theta
             # several iterations: a worker gets the policy state with its first chunk of each
             steps = [search.step()["env_steps"] for _ in range(3)]
-            if workers == 2:  # the first iteration in the workers, then as the case says
-                assert (search._backend._here is not None) is here
+            if workers == 2:  # the first iteration in the workers, the second as the case says
+                assert ("here" in search._backend._seconds) is here
         finally:
             search.close()
         assert not torch.equal(before, search.theta)
@@ -478,7 +487,7 @@ def test_workers_exit_when_the_main_process_is_killed(variant):
 def test_a_killed_worker_stops_training_with_one_line(monkeypatch):
     """A worker killed mid-training (OOM killer, kill -9) raises one RlpipeError line in the
     main process within seconds; close() then neither raises nor hangs."""
-    monkeypatch.setattr(backends, "SMALL_WORK_SECONDS", 0.0)  # every iteration in the workers
+    monkeypatch.setattr(backends, "SHORT_SECONDS", 0.0)  # every iteration in the workers
     before = set(multiprocessing.active_children())
     cfg = ARSConfig(num_directions=4, num_best=4, episode_length=200, workers=2)
     algo = ARS(partial(make_env, PENDULUM, seed=0), cfg)

@@ -23,9 +23,8 @@ from typing import Any, Protocol
 import cloudpickle
 import torch
 from tensordict.nn import TensorDictModuleBase
-from torch.nn.utils import parameters_to_vector
 
-from rlpipe.algos.ars.population import PopulationPolicy
+from rlpipe.algos.ars.chunking import chunks_per_worker
 from rlpipe.algos.ars.rollout import RolloutResult, Rollouts
 from rlpipe.envs import EnvFactory
 from rlpipe.errors import RlpipeError
@@ -33,10 +32,10 @@ from rlpipe.errors import RlpipeError
 __all__ = ["BACKENDS", "RAY_INSTALL", "Backend", "Shares", "WorkerDied", "start_backend"]
 
 BACKENDS = ("local", "ray")
-CHUNKS_PER_WORKER = 8
-# an iteration's rollout CPU seconds below which this process rolls out the next one alone: the
-# round trips to the workers would cost more than they save
-SMALL_WORK_SECONDS = 0.02
+# iterations the workers finish faster than this are short enough for round trips to matter:
+# one in this process alone is timed too (again every PROBE_EVERY iterations), the faster wins
+SHORT_SECONDS = 0.1
+PROBE_EVERY = 10
 RAY_INSTALL = 'pip install "rlpipe[ray]"'
 
 # what a backend's roll_out returns: (member indices, their result) pairs covering the population
@@ -94,16 +93,6 @@ class _Units:
         return self.policy, self.env_factory, num_envs, self.seed + worker, self.options
 
 
-def chunks_per_worker(policy: TensorDictModuleBase) -> int:
-    """How many chunks each worker takes per iteration: :data:`CHUNKS_PER_WORKER` (small chunks
-    balance heavy-tailed episode lengths) when the policy runs as NumPy; one otherwise, since a
-    call through torch (``torch.vmap`` over a module without a NumPy form) costs about as much
-    for one member as for all: one chunk per worker makes no more calls per step than one
-    process does, on half the members."""
-    flat = parameters_to_vector(policy.parameters()).detach()[None]
-    return CHUNKS_PER_WORKER if PopulationPolicy(policy, flat).numpy_only else 1
-
-
 class _InProcess:
     """The rollout backend that steps the whole population as one batch in this process."""
 
@@ -120,9 +109,10 @@ class _InProcess:
 class _Pool:
     """A rollout backend of workers that pull chunks of the population as they free up.
 
-    Episode lengths are heavy-tailed, so each worker takes small chunks (about eight per worker
-    and iteration, one for policies that run through torch: :func:`chunks_per_worker`) rather than
-    owning a fixed share; one worker takes everything as one chunk.
+    Episode lengths are heavy-tailed, so each worker takes small chunks (up to eight per worker
+    and iteration, as many as the policy's measured call cost allows:
+    :func:`rlpipe.algos.ars.chunking.chunks_per_worker`) rather than owning a fixed share; one
+    worker takes everything as one chunk.
     A chunk carries its members' parameters and episode seeds, and the policy's state (the
     normaliser changes every iteration) when it is the worker's first of the iteration, all as
     NumPy arrays; only its :class:`RolloutResult` comes back. Subclasses fill
@@ -132,11 +122,13 @@ class _Pool:
 
     def __init__(self, units: _Units, population: int, workers: int) -> None:
         self.policy = units.policy
-        self.chunk_size = (
-            -(-population // (chunks_per_worker(units.policy) * workers))
-            if workers > 1
-            else population
-        )
+        if workers > 1:
+            chunks = chunks_per_worker(
+                units.policy, units.env_factory, population, workers, units.seed
+            )
+            self.chunk_size = -(-population // (chunks * workers))
+        else:
+            self.chunk_size = population
         self.chunks = list(torch.arange(population).split(self.chunk_size))
         self.workers: list[Any] = []
 
@@ -210,17 +202,20 @@ class _Processes(_Pool):
     dies raises :class:`WorkerDied` in the parent, which never waits on a dead worker; the other
     workers are stopped at once and the pool cannot be used again.
 
-    An iteration whose rollouts took less than :data:`SMALL_WORK_SECONDS` of CPU (short episodes,
-    e.g. early CartPole) is followed by one rolled out in this process, on env copies of its own
-    built at the first such iteration, until the work grows again: so workers are never slower
-    than one process by their round trips.
+    When the workers finish an iteration in under :data:`SHORT_SECONDS` (short episodes, e.g.
+    early CartPole), an iteration in this process alone, on env copies of its own, is timed too,
+    and the faster way rolls out the following ones (each tried again every
+    :data:`PROBE_EVERY` iterations, as the work changes): so workers are not slower than one
+    process by their round trips. Either way gives the same rollouts (episode seeds come with
+    the members).
     """
 
     def __init__(self, units: _Units, population: int, workers: int) -> None:
         super().__init__(units, population, workers)
         self._units, self._population = units, population
-        self._here: _InProcess | None = None  # this process's own copies, once work is small
-        self._work = float("inf")  # the last iteration's rollout CPU seconds
+        self._here: _InProcess | None = None  # this process's own copies, once timed
+        self._seconds: dict[str, float] = {}  # "pool"/"here" -> its latest iteration's wall time
+        self._iterations = 0
         method = _start_method()
         ctx = mp.get_context(method)
         self._procs: dict[Connection, Any] = {}  # parent end -> its worker process
@@ -254,15 +249,33 @@ class _Processes(_Pool):
     def roll_out(self, flat: torch.Tensor, seeds: torch.Tensor) -> Shares:
         if self._failure is not None:
             raise self._failure
-        if self._work < SMALL_WORK_SECONDS:
-            if self._here is None:
-                args = self._units.args(len(self.workers), self._population)
-                self._here = _InProcess(Rollouts(*args), self._population)
+        way = self._way()
+        if way == "here" and self._here is None:  # its env copies, built off the clock
+            args = self._units.args(len(self.workers), self._population)
+            self._here = _InProcess(Rollouts(*args), self._population)
+        start = time.perf_counter()
+        if way == "here":
+            for proc in self._procs.values():  # a dead worker stops training here too
+                if not proc.is_alive():
+                    raise self._died(proc)
             shares = self._here.roll_out(flat, seeds)
         else:
             shares = super().roll_out(flat, seeds)
-        self._work = sum(result.cpu_seconds for _, result in shares)
+        self._seconds[way] = time.perf_counter() - start
+        self._iterations += 1
         return shares
+
+    def _way(self) -> str:
+        """Where the next iteration rolls out: the workers ("pool") or this process ("here")."""
+        pool, here = self._seconds.get("pool"), self._seconds.get("here")
+        if pool is None:
+            return "pool"
+        if here is None:
+            return "here" if pool < SHORT_SECONDS else "pool"
+        faster, slower = ("here", "pool") if here < pool else ("pool", "here")
+        if self._seconds[faster] >= SHORT_SECONDS:  # long iterations: round trips do not matter
+            return "pool"
+        return slower if self._iterations % PROBE_EVERY == 0 else faster
 
     def _submit(self, worker: Any, *message: Any) -> Any:
         try:

@@ -49,8 +49,6 @@ class PopulationPolicy:
             call = batched_call(module.module, params) if params else numpy_layer(module.module)
             self.steps.append((call, module.in_keys, module.out_keys[0]))
         check(offset == flat.shape[-1], "flat parameters do not match the policy's parameters")
-        # whether every layer runs as NumPy: else each call pays torch's per-call cost (vmap)
-        self.numpy_only = not any(getattr(call, "via_torch", False) for call, _, _ in self.steps)
 
     @torch.no_grad()
     def __call__(self, td: TensorDictBase) -> TensorDictBase:
@@ -71,8 +69,8 @@ def batched_call(module: nn.Module, params: dict[str, torch.Tensor]) -> Callable
     ``nn.Linear`` layers become one batched matmul, ``nn.LayerNorm`` (over the last dimension)
     a NumPy normalisation with each member's gain and bias, and ``nn.Sequential`` chains
     (TorchRL's MLP) are followed layer by layer, parameter-free layers through
-    :func:`numpy_layer`; any other module goes through ``torch.vmap`` over ``functional_call``
-    (the function then has ``via_torch = True``). ``params`` are CPU tensors.
+    :func:`numpy_layer`; any other module goes through ``torch.vmap`` over ``functional_call``.
+    ``params`` are CPU tensors.
     """
     if isinstance(module, nn.Linear):
         weight = params["weight"].detach().transpose(1, 2).numpy()  # [P, in, out]
@@ -108,15 +106,9 @@ def batched_call(module: nn.Module, params: dict[str, torch.Tensor]) -> Callable
                 x = layer(x)
             return x
 
-        return _marked(chain, any(getattr(layer, "via_torch", False) for layer in layers))
+        return chain
     vmapped = torch.vmap(lambda p, *args: torch.func.functional_call(module, p, args))
-    return _marked(lambda *xs: vmapped(params, *map(torch.from_numpy, xs)).numpy(), True)
-
-
-def _marked(call: Callable[..., np.ndarray], via_torch: bool) -> Callable[..., np.ndarray]:
-    """``call``, marked as running through torch (a per-call cost NumPy code does not pay)."""
-    call.via_torch = via_torch  # type: ignore[attr-defined]
-    return call
+    return lambda *xs: vmapped(params, *map(torch.from_numpy, xs)).numpy()
 
 
 # NumPy twins of common parameter-free torch layers, which cannot implement NumpyForward
@@ -139,4 +131,4 @@ def numpy_layer(module: nn.Module) -> Callable[..., np.ndarray]:
         return NUMPY_ACTIVATIONS[type(module)]
     if isinstance(module, NumpyForward):
         return module.numpy_forward()
-    return _marked(lambda *xs: module.forward(*map(torch.from_numpy, xs)).numpy(), True)
+    return lambda *xs: module.forward(*map(torch.from_numpy, xs)).numpy()

@@ -1,0 +1,66 @@
+"""How finely worker processes share an ARS population: chunk sizes from measured costs.
+
+With ``W`` workers each taking ``n`` chunks of the ``P`` members per iteration, a worker makes
+about ``n`` policy calls per env step (one per chunk) and ``P / W`` member-steps of the env. Small
+chunks balance heavy-tailed episode lengths, but every call costs about as much for one member
+as for several (NumPy's per-call overhead; far more through ``torch.vmap`` for a module without a
+NumPy form). So ``n`` is the most chunks (at most :data:`MAX_CHUNKS`) whose policy calls stay
+within :data:`OVERHEAD` of the worker's env steps, from a policy call and an env step timed once
+when the workers start.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from tensordict.nn import TensorDictModuleBase
+from torch.nn.utils import parameters_to_vector
+
+from rlpipe.algos.ars.population import PopulationPolicy
+from rlpipe.envs import EnvFactory, sub_envs
+
+__all__ = ["MAX_CHUNKS", "OVERHEAD", "chunks_per_worker", "measured_costs"]
+
+MAX_CHUNKS = 8  # per worker and iteration
+OVERHEAD = 0.25  # a worker's policy calls may cost this share of its env steps, at most
+_ENV_STEPS, _CALLS = 64, 32  # what is timed
+
+
+def measured_costs(
+    policy: TensorDictModuleBase, env_factory: EnvFactory, members: int, seed: int
+) -> tuple[float, float]:
+    """Seconds of one population call of ``policy`` on ``members`` members and of one env step
+    (random actions on one copy from ``env_factory``)."""
+    env = env_factory(num_envs=1, seed=seed)
+    try:
+        inner = sub_envs(env)[0]
+        inner.action_space.seed(seed)
+        observation, _ = inner.reset(seed=seed)
+        start = time.perf_counter()
+        for _ in range(_ENV_STEPS):
+            observation, _, terminated, truncated, _ = inner.step(inner.action_space.sample())
+            if terminated or truncated:
+                observation, _ = inner.reset()
+        env_step = (time.perf_counter() - start) / _ENV_STEPS
+    finally:
+        env.close()
+    flat = parameters_to_vector(policy.parameters()).detach().expand(members, -1).clone()
+    forward = PopulationPolicy(policy, flat)
+    batch = np.repeat(np.asarray(observation, np.float32)[None], members, axis=0)
+    forward.outputs({"observation": batch.copy()})  # first-call set-up off the clock
+    start = time.perf_counter()
+    for _ in range(_CALLS):
+        forward.outputs({"observation": batch.copy()})
+    return (time.perf_counter() - start) / _CALLS, env_step
+
+
+def chunks_per_worker(
+    policy: TensorDictModuleBase, env_factory: EnvFactory, population: int, workers: int, seed: int
+) -> int:
+    """Chunks per worker and iteration: the most, up to :data:`MAX_CHUNKS`, whose policy calls
+    cost at most :data:`OVERHEAD` of the worker's env steps (at least one)."""
+    members = max(population // (MAX_CHUNKS * workers), 1)
+    call, env_step = measured_costs(policy, env_factory, members, seed)
+    affordable = OVERHEAD * population * env_step / (workers * call)
+    return int(min(max(affordable, 1), MAX_CHUNKS))
