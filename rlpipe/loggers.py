@@ -29,6 +29,7 @@ from torchrl.record.loggers import (
 
 from rlpipe.config import Config, LoggerConfig, flatten
 from rlpipe.errors import RlpipeError
+from rlpipe.rundir import NOT_FINGERPRINTED  # what does not decide a run's results
 
 METRICS_DIR = "metrics"  # <run dir>/metrics/scalars/<name>.csv (TorchRL CSVLogger's layout)
 MAX_OPEN_FILES = 64  # CsvLogger keeps at most this many metric files open (runs log < 30)
@@ -200,8 +201,6 @@ def run_card(cfg: Config, overrides: Sequence[str] = ()) -> RunCard:
     """The card of run ``cfg``: named ``<algo> <env id> seed=<s>`` plus the command line's other
     overrides that decide the results (not budgets, cadences, logging), tagged with algo, env
     and seed, its resolved config as the hyper-parameters."""
-    from rlpipe.rundir import NOT_FINGERPRINTED  # what does not decide a run's results
-
     def told(override: str) -> bool:  # not in the name already, and deciding the results
         key = override.lstrip("+~").split("=")[0]
         named = key in ("seed", "algo", "env") or key.startswith("hydra")
