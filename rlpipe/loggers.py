@@ -201,6 +201,7 @@ def run_card(cfg: Config, overrides: Sequence[str] = ()) -> RunCard:
     """The card of run ``cfg``: named ``<algo> <env id> seed=<s>`` plus the command line's other
     overrides that decide the results (not budgets, cadences, logging), tagged with algo, env
     and seed, its resolved config as the hyper-parameters."""
+
     def told(override: str) -> bool:  # not in the name already, and deciding the results
         key = override.lstrip("+~").split("=")[0]
         named = key in ("seed", "algo", "env") or key.startswith("hydra")

@@ -186,6 +186,10 @@ class EnvAlgorithm:
         if self._copy_weights:
             self.collector.update_policy_weights_()
 
+    def close(self) -> None:
+        """Stop the collector (:meth:`make_collector`) and close its env."""
+        self.collector.shutdown()
+
     def collect(self, at_most: int | None = None) -> TensorDictBase:
         """The collector's next batch, ``[env copies, steps]``, cut short (whole steps of the
         copies) to hold at most ``at_most`` frames and to end at ``frame_limit``: a run's

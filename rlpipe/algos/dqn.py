@@ -195,7 +195,3 @@ class DQN(EnvAlgorithm):
         self._follow_schedules()
         self._target_cadence = Cadence(self.cfg.target_update_every, self.frames)
         self.collector.update_policy_weights_()
-
-    def close(self) -> None:
-        """Stop the collector and close its env."""
-        self.collector.shutdown()

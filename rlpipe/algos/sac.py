@@ -133,7 +133,3 @@ class SAC(EnvAlgorithm):
 
     def _restored(self) -> None:
         self.collector.update_policy_weights_()
-
-    def close(self) -> None:
-        """Stop the collector and close its env."""
-        self.collector.shutdown()

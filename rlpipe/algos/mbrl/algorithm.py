@@ -295,10 +295,6 @@ class MBRL(EnvAlgorithm):
         warmup = self.cfg.warmup_frames
         self.mpc.warmup = self.frames < warmup or (warmup > 0 and not fitted)
 
-    def close(self) -> None:
-        """Stop the collector and close its env."""
-        self.collector.shutdown()
-
 
 def _sub_batch_steps(steps: int) -> int:
     """The largest divisor of an iteration's ``steps`` up to ``_SUB_BATCH_STEPS``: sub-batches
