@@ -4,11 +4,13 @@ For each policy network (the notebook's linear map, which runs as NumPy; an MLP 
 NumPy since LayerNorm has a NumPy form; a custom ``nn.Module``, which runs through
 ``torch.vmap`` every step) and env, ``ARSSearch`` runs ``--iterations`` iterations with
 ``workers=1`` and with ``workers=2``, and, for reference, with ``workers=2`` and the chunking
-every policy had before (eight chunks per worker). Rounds are interleaved and each cell is the
-median over ``--repeats`` rounds; worker start-up is excluded. Ratio: seconds with 2 workers ÷
-seconds with 1 (below 1: the workers are faster).
+every policy had before (eight chunks per worker). Per run: the one-off cost (start-up, i.e.
+worker processes and env copies, plus the first iteration, which runs cold in any process) and
+the mean seconds of the iterations after it (those that time the workers against this process
+included); each cell is the median over ``--repeats`` interleaved rounds. Ratio: seconds per
+iteration with 2 workers ÷ with 1 (below 1: the workers are faster).
 
-    python benchmarks/ars_workers.py --iterations 5 --repeats 3 --append BENCHMARKS.md
+    python benchmarks/ars_workers.py --iterations 60 --repeats 3 --append BENCHMARKS.md
 """
 
 from __future__ import annotations
@@ -65,8 +67,9 @@ SETUPS = {
 
 def seconds_per_iteration(
     env_id: str, network: str, workers: int, chunks: int | None, args
-) -> float:
-    """Median seconds of an ARS iteration (16 directions) after the workers started."""
+) -> tuple[float, float]:
+    """Seconds of start-up plus the first ARS iteration (16 directions), and the mean seconds
+    of the iterations after it."""
     env_cfg = EnvConfig(id=env_id)
     probe = make_env(env_cfg)
     size, outputs = probe.observation_spec["observation"].shape[-1], None
@@ -90,26 +93,27 @@ def seconds_per_iteration(
             normalizer=normalizer,
             workers=workers,
         )
-        search.start()
-        times = []
-        for _ in range(args.iterations):
-            start = time.perf_counter()
+        start = time.perf_counter()
+        search.step()  # starts the workers first
+        first = time.perf_counter() - start
+        start = time.perf_counter()
+        for _ in range(args.iterations - 1):
             search.step()
-            times.append(time.perf_counter() - start)
+        rest = (time.perf_counter() - start) / (args.iterations - 1)
         search.close()
     finally:
         backends.chunks_per_worker = saved
-    return median(times)
+    return first, rest
 
 
 def main() -> None:
     p = parser(__doc__.splitlines()[0])
     p.add_argument("--envs", nargs="+", default=["Pendulum-v1", "CartPole-v1"])
-    p.add_argument("--iterations", type=int, default=5)
+    p.add_argument("--iterations", type=int, default=60)
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--max-steps", type=int, default=1000)
     args = p.parse_args()
-    cells: dict[tuple[str, str, str], list[float]] = {}
+    cells: dict[tuple[str, str, str], list[tuple[float, float]]] = {}
     for _ in range(args.repeats):  # interleaved: a burst of load moves one round, not a column
         for env_id in args.envs:
             for network in NETWORKS:
@@ -120,11 +124,15 @@ def main() -> None:
     rows = []
     for env_id in args.envs:
         for network in NETWORKS:
-            one, two, before = (median(cells[env_id, network, s]) for s in SETUPS)
+            runs = [cells[env_id, network, setup] for setup in SETUPS]
+            first_one, first_two, _ = (median(first for first, _ in cell) for cell in runs)
+            one, two, before = (median(rest for _, rest in cell) for cell in runs)
             rows.append(
                 [
                     env_id,
                     network,
+                    f"{first_one:.3f}",
+                    f"{first_two:.3f}",
                     f"{one:.3f}",
                     f"{two:.3f}",
                     f"{before:.3f}",
@@ -141,6 +149,8 @@ def main() -> None:
                 [
                     "env",
                     "policy network",
+                    "start-up + 1st iteration s, 1 worker",
+                    "start-up + 1st iteration s, 2 workers",
                     "s/iter, 1 worker",
                     "s/iter, 2 workers",
                     "s/iter, 2 workers, 8 chunks each (before)",

@@ -10,8 +10,9 @@ then its ``metrics/scalars/eval/return_mean.csv`` and ``time/train_seconds.csv``
 frames and training seconds (evaluation excluded) at the first eval reaching the target, the mean
 of the last three evals and the final frames; ``evaluation/trained-*.json`` the final greedy
 eval. With ``--sb3``, presets that have RL Zoo hyper-parameters also train Stable-Baselines3's
-DQN (a spawned process, one torch thread) on the same seed with the preset's eval cadence and
-episodes (greedy, vectorised eval envs, eval time off the clock), then the same final eval.
+DQN, PPO or SAC (a spawned process, one torch thread) on the same seed with the preset's eval
+cadence and episodes (greedy, vectorised eval envs, eval time off the clock), then the same final
+eval.
 ``--jobs`` runs go at once; rlpipe seed s and SB3 seed s start side by side. Runs that an earlier
 call finished in ``--out`` are read instead of run again, so an interrupted benchmark continues
 and a table can be made again from its runs.
@@ -66,7 +67,9 @@ class Preset:
     budget_text: str = ""  # the budget of the Zoo figure (or of the target)
     solved: float | None = None  # solved: last-three-evals mean >= this (None: the target)
     seeds: tuple[int, ...] = (0, 1, 2)  # seeds when --seeds is not given
-    sb3: dict[str, Any] | None = None  # SB3 DQN keyword arguments (RL Zoo's hyperparams/dqn.yml)
+    sb3: dict[str, Any] | None = None  # SB3 keyword arguments (RL Zoo's hyperparams/<algo>.yml)
+    sb3_algo: str = "DQN"  # the SB3 class they are for
+    sb3_envs: int = 1  # the Zoo's n_envs
 
     @property
     def solved_bar(self) -> float:
@@ -76,6 +79,19 @@ class Preset:
     def final_bar(self) -> float:
         """The bar the final evals are counted against: the Zoo figure, else the solved bar."""
         return self.solved_bar if self.zoo is None else self.zoo
+
+
+class linear:  # noqa: N801 (named as the Zoo's lin_<start>)
+    """The RL Zoo's ``lin_<start>`` schedule: ``start`` annealed linearly to 0 (picklable)."""
+
+    def __init__(self, start: float) -> None:
+        self.start = start
+
+    def __call__(self, progress_remaining: float) -> float:
+        return progress_remaining * self.start
+
+    def __repr__(self) -> str:
+        return f"lin_{self.start:g}"
 
 
 PRESETS: dict[str, Preset] = {
@@ -159,6 +175,59 @@ PRESETS: dict[str, Preset] = {
         budget_text="≤ 50k steps",
     ),
     "ars_bipedal": Preset("ars_bipedal", "BipedalWalker-v3", target=300.0, final_episodes=100),
+    "ppo_cartpole": Preset(
+        "ppo_cartpole",
+        "CartPole-v1",
+        target=500.0,
+        solved=475.0,
+        final_episodes=100,
+        zoo=500.0,
+        budget_text="100k steps",
+        sb3=dict(
+            n_steps=32,
+            batch_size=256,
+            gae_lambda=0.8,
+            gamma=0.98,
+            n_epochs=20,
+            ent_coef=0.0,
+            learning_rate=linear(1e-3),
+            clip_range=linear(0.2),
+        ),
+        sb3_algo="PPO",
+        sb3_envs=8,
+    ),
+    "sac_pendulum": Preset(
+        "sac_pendulum",
+        "Pendulum-v1",
+        target=-157.0,
+        final_episodes=100,
+        zoo=-157.0,
+        budget_text="20k steps",
+        sb3=dict(learning_rate=1e-3),
+        sb3_algo="SAC",
+    ),
+    "sac_bipedal": Preset(
+        "sac_bipedal",
+        "BipedalWalker-v3",
+        target=297.7,
+        final_episodes=100,
+        zoo=297.7,
+        budget_text="500k steps",
+        sb3=dict(
+            learning_rate=7.3e-4,
+            buffer_size=300_000,
+            batch_size=256,
+            ent_coef="auto",
+            gamma=0.98,
+            tau=0.02,
+            train_freq=64,
+            gradient_steps=64,
+            learning_starts=10_000,
+            use_sde=True,
+            policy_kwargs=dict(log_std_init=-3, net_arch=[400, 300]),
+        ),
+        sb3_algo="SAC",
+    ),
 }
 
 
@@ -200,6 +269,8 @@ class Sb3Job:
     eval_episodes: int
     final_episodes: int
     kwargs: dict[str, Any]
+    algo: str = "DQN"
+    n_envs: int = 1
 
 
 def greedy_returns(model: Any, envs: Any, episodes: int, seed: int) -> list[float]:
@@ -222,11 +293,13 @@ def greedy_returns(model: Any, envs: Any, episodes: int, seed: int) -> list[floa
 
 
 def run_sb3(job: Sb3Job) -> dict[str, Any]:
-    """Train SB3's DQN as ``job`` says (one torch thread); evals and the final eval's mean."""
+    """Train SB3's ``job.algo`` as ``job`` says (one torch thread); evals and the final eval's
+    mean."""
     import gymnasium as gym
+    import stable_baselines3
     import torch
-    from stable_baselines3 import DQN
     from stable_baselines3.common.callbacks import BaseCallback
+    from stable_baselines3.common.env_util import make_vec_env
 
     torch.set_num_threads(1)
 
@@ -255,7 +328,9 @@ def run_sb3(job: Sb3Job) -> dict[str, Any]:
             self.evals.append((self.num_timesteps, mean, t0 - self.start - self.eval_seconds))
             self.eval_seconds += time.perf_counter() - t0
 
-    model = DQN("MlpPolicy", job.env, seed=job.seed, device="cpu", **job.kwargs)
+    env = make_vec_env(job.env, n_envs=job.n_envs, seed=job.seed)
+    algo = getattr(stable_baselines3, job.algo)
+    model = algo("MlpPolicy", env, seed=job.seed, device="cpu", **job.kwargs)
     callback = GreedyEval()
     model.learn(job.frames, callback=callback)
     if not callback.evals or callback.evals[-1][0] != model.num_timesteps:
@@ -278,6 +353,8 @@ def sb3_job(preset: Preset, cfg: Config, seed: int, out: Path) -> Run:
         cfg.eval_episodes,
         preset.final_episodes,
         preset.sb3,
+        preset.sb3_algo,
+        preset.sb3_envs,
     )
     saved = out / "sb3.json"
     reused = saved.is_file()  # a finished run of an earlier call with this --out
@@ -546,7 +623,12 @@ def report(
             f"- `{p.experiment}`: seeds {', '.join(str(r.seed) for r in ours)}; a greedy eval of "
             f"{cfg.eval_episodes} episodes every {cfg.eval_every:,} frames and at the end, then "
             f"`python -m rlpipe.evaluate` with {episodes} episodes"
-            + (f"; SB3 DQN with the RL Zoo's settings: {_kwargs(p.sb3)}" if sb3 else "")
+            + (
+                f"; SB3 {p.sb3_algo} with the RL Zoo's settings: "
+                + _kwargs({"n_envs": p.sb3_envs, **p.sb3} if p.sb3_envs > 1 else p.sb3)
+                if sb3
+                else ""
+            )
         )
     start, end = (", ".join(f"{x:.2f}" for x in load) for load in loads)
     reused = sum(r.reused for r in runs)

@@ -16,6 +16,7 @@ from omegaconf import DictConfig
 
 from rlpipe.cli import (
     USER_ERRORS,
+    check_launcher,
     fail,
     open_entries,
     register_configs,
@@ -84,6 +85,7 @@ def main() -> None:
     logging.getLogger("torchrl").setLevel(logging.WARNING)  # keep the console to progress + summary
     try:
         sys.argv[1:] = open_entries(resume_in_place(resume_sweep(sys.argv[1:])))
+        check_launcher(sys.argv[1:])
         if {"-c", "--cfg"} & set(sys.argv[1:]):
             validate_overrides(sys.argv[1:])  # Hydra prints the config without calling the job
     except USER_ERRORS as err:

@@ -7,6 +7,7 @@ import dataclasses
 import logging
 import os
 import re
+import shutil
 import sys
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
@@ -135,6 +136,17 @@ def validate_overrides(argv: Sequence[str]) -> None:
             overrides.append(arg)
     with initialize_config_module("rlpipe.conf", version_base="1.3"):
         to_config(compose("config", overrides=overrides))
+
+
+def check_launcher(argv: Sequence[str]) -> None:
+    """Refuse ``hydra/launcher=submitit_slurm`` where Slurm is not (no ``srun`` on the PATH)."""
+    launchers = [arg.partition("=")[2] for arg in argv if re.match(r"^\+{0,2}hydra/launcher=", arg)]
+    check(
+        not launchers or launchers[-1] != "submitit_slurm" or shutil.which("srun") is not None,
+        "hydra/launcher=submitit_slurm needs a Slurm cluster, and srun is not on the PATH here: "
+        "run the sweep on a Slurm login node, or here with hydra/launcher=submitit_local (or "
+        "joblib)",
+    )
 
 
 def run_entry_point(

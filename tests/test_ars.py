@@ -14,6 +14,7 @@ import threading
 import time
 from dataclasses import fields
 from functools import partial
+from types import SimpleNamespace
 
 import gymnasium as gym
 import numpy as np
@@ -215,7 +216,7 @@ def test_worker_processes_give_the_same_search_as_one_process(monkeypatch, short
             # several iterations: a worker gets the policy state with its first chunk of each
             steps = [search.step()["env_steps"] for _ in range(3)]
             if workers == 2:  # the first iteration in the workers, the second as the case says
-                assert ("here" in search._backend._seconds) is here
+                assert ("here" in search._backend._timed) is here
         finally:
             search.close()
         assert not torch.equal(before, search.theta)
@@ -223,6 +224,29 @@ def test_worker_processes_give_the_same_search_as_one_process(monkeypatch, short
         thetas.append(search.theta)
         counts.append(steps)
     assert torch.allclose(thetas[0], thetas[1]) and counts[0] == counts[1]
+
+
+def test_workers_or_this_process_by_seconds_per_env_step():
+    """The faster way per env step rolls out; the slower is timed again once the work has
+    changed RETIME_FACTOR-fold; long iterations always go to the workers."""
+    short = backends.SHORT_SECONDS
+
+    def way(steps: int, **timed: tuple[float, int]) -> str:
+        pool = SimpleNamespace(_timed=timed, _steps=steps)
+        return backends._Processes._way(pool)
+
+    assert way(0) == "pool"  # nothing timed yet
+    assert way(100, pool=(short / 2, 100)) == "here"  # short: this process is timed too
+    assert way(100, pool=(short * 2, 100)) == "pool"
+    # this process is faster per step, though its iteration (more steps) took longer
+    fast_here = {"pool": (short / 5, 100), "here": (short / 4, 150)}
+    assert way(150, **fast_here) == "here"
+    assert way(int(100 * backends.RETIME_FACTOR) - 1, **fast_here) == "here"
+    assert way(int(100 * backends.RETIME_FACTOR), **fast_here) == "pool"  # the work has doubled
+    assert way(2_000, **fast_here) == "pool"  # 2,000 steps here would take over SHORT_SECONDS
+    fast_pool = {"pool": (short / 4, 200), "here": (short / 3, 200)}
+    assert way(200, **fast_pool) == "pool"
+    assert way(90, **fast_pool) == "here"  # the work has halved since this process was timed
 
 
 def test_rollout_ends_episodes_at_the_env_time_limit_inside_its_wrappers():

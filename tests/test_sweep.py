@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import shutil
 from pathlib import Path
 
 import pytest
@@ -11,7 +12,8 @@ import yaml
 from conftest import TINY, run_module
 from hydra.errors import ConfigCompositionException, MissingConfigException
 
-from rlpipe.cli import format_error
+from rlpipe.cli import check_launcher, format_error
+from rlpipe.errors import RlpipeError
 from rlpipe.sweep import write_summary
 
 # a tiny sweep of two jobs, the second of which fails on a bad value
@@ -102,6 +104,27 @@ def test_missing_launcher_plugin_names_the_extra():
         "unknown hydra/launcher option 'joblib'; choose one of: basic; "
         'install it with: pip install "rlpipe[joblib]"'
     )
+
+
+@pytest.mark.skipif(shutil.which("srun") is not None, reason="this machine is a Slurm node")
+def test_slurm_launcher_without_slurm_is_one_line_and_writes_nothing(tmp_path):
+    proc, sweep = run_sweep(tmp_path, "hydra/launcher=submitit_slurm", "seed=0,1", *FAST)
+    assert proc.returncode == 2
+    assert proc.stderr.strip().splitlines() == [
+        "rlpipe: error: hydra/launcher=submitit_slurm needs a Slurm cluster, and srun is not on "
+        "the PATH here: run the sweep on a Slurm login node, or here with "
+        "hydra/launcher=submitit_local (or joblib)"
+    ]
+    assert not sweep.exists() and not (tmp_path / "outputs").exists()
+
+
+def test_slurm_launcher_is_let_through_where_srun_is(monkeypatch):
+    monkeypatch.setattr(shutil, "which", lambda name: f"/usr/bin/{name}")
+    check_launcher(["hydra/launcher=submitit_slurm", "seed=0,1"])
+    monkeypatch.setattr(shutil, "which", lambda name: None)
+    check_launcher(["hydra/launcher=submitit_local"])
+    with pytest.raises(RlpipeError, match="needs a Slurm cluster"):
+        check_launcher(["hydra/launcher=joblib", "+hydra/launcher=submitit_slurm"])
 
 
 def test_composition_error_keeps_its_reason():

@@ -33,9 +33,10 @@ __all__ = ["BACKENDS", "RAY_INSTALL", "Backend", "Shares", "WorkerDied", "start_
 
 BACKENDS = ("local", "ray")
 # iterations the workers finish faster than this are short enough for round trips to matter:
-# one in this process alone is timed too (again every PROBE_EVERY iterations), the faster wins
+# one in this process alone is timed too, and the faster per env step wins; the slower is timed
+# again once an iteration's env steps have grown or shrunk RETIME_FACTOR-fold since its timing
 SHORT_SECONDS = 0.1
-PROBE_EVERY = 10
+RETIME_FACTOR = 2.0
 RAY_INSTALL = 'pip install "rlpipe[ray]"'
 
 # what a backend's roll_out returns: (member indices, their result) pairs covering the population
@@ -204,18 +205,20 @@ class _Processes(_Pool):
 
     When the workers finish an iteration in under :data:`SHORT_SECONDS` (short episodes, e.g.
     early CartPole), an iteration in this process alone, on env copies of its own, is timed too,
-    and the faster way rolls out the following ones (each tried again every
-    :data:`PROBE_EVERY` iterations, as the work changes): so workers are not slower than one
-    process by their round trips. Either way gives the same rollouts (episode seeds come with
-    the members).
+    and the way with the fewer seconds per env step rolls out the following ones: so workers are
+    not slower than one process by their round trips. The round trips cost the same whatever the
+    work, so the slower way is timed again once an iteration's env steps have changed
+    :data:`RETIME_FACTOR`-fold since it was timed (episodes grow as the policy learns). Either
+    way gives the same rollouts (episode seeds come with the members).
     """
 
     def __init__(self, units: _Units, population: int, workers: int) -> None:
         super().__init__(units, population, workers)
         self._units, self._population = units, population
-        self._here: _InProcess | None = None  # this process's own copies, once timed
-        self._seconds: dict[str, float] = {}  # "pool"/"here" -> its latest iteration's wall time
-        self._iterations = 0
+        self._here: _InProcess | None = None  # this process's own env copies
+        # "pool"/"here" -> (wall seconds, env steps) of its latest iteration
+        self._timed: dict[str, tuple[float, int]] = {}
+        self._steps = 0  # env steps of the latest iteration
         method = _start_method()
         ctx = mp.get_context(method)
         self._procs: dict[Connection, Any] = {}  # parent end -> its worker process
@@ -237,6 +240,9 @@ class _Processes(_Pool):
                 finally:
                     child.close()
                 self._procs[parent] = proc
+            # this process's own copies, built (as part of start-up) while the workers build theirs
+            args = units.args(workers, population)
+            self._here = _InProcess(Rollouts(*args), population)
             waiting = list(self.workers)
             while waiting:  # until every worker has built its envs
                 for conn in self._wait(waiting):
@@ -250,9 +256,6 @@ class _Processes(_Pool):
         if self._failure is not None:
             raise self._failure
         way = self._way()
-        if way == "here" and self._here is None:  # its env copies, built off the clock
-            args = self._units.args(len(self.workers), self._population)
-            self._here = _InProcess(Rollouts(*args), self._population)
         start = time.perf_counter()
         if way == "here":
             for proc in self._procs.values():  # a dead worker stops training here too
@@ -261,21 +264,23 @@ class _Processes(_Pool):
             shares = self._here.roll_out(flat, seeds)
         else:
             shares = super().roll_out(flat, seeds)
-        self._seconds[way] = time.perf_counter() - start
-        self._iterations += 1
+        seconds = time.perf_counter() - start
+        self._steps = max(int(sum(result.lengths.sum() for _, result in shares)), 1)
+        self._timed[way] = seconds, self._steps
         return shares
 
     def _way(self) -> str:
         """Where the next iteration rolls out: the workers ("pool") or this process ("here")."""
-        pool, here = self._seconds.get("pool"), self._seconds.get("here")
-        if pool is None:
+        if "pool" not in self._timed:
             return "pool"
-        if here is None:
-            return "here" if pool < SHORT_SECONDS else "pool"
-        faster, slower = ("here", "pool") if here < pool else ("pool", "here")
-        if self._seconds[faster] >= SHORT_SECONDS:  # long iterations: round trips do not matter
+        if "here" not in self._timed:
+            return "here" if self._timed["pool"][0] < SHORT_SECONDS else "pool"
+        rate = {way: seconds / steps for way, (seconds, steps) in self._timed.items()}
+        faster, slower = sorted(rate, key=rate.get)
+        if rate[faster] * self._steps >= SHORT_SECONDS:  # long iterations: round trips don't matter
             return "pool"
-        return slower if self._iterations % PROBE_EVERY == 0 else faster
+        change = self._steps / self._timed[slower][1]
+        return slower if max(change, 1 / change) >= RETIME_FACTOR else faster
 
     def _submit(self, worker: Any, *message: Any) -> Any:
         try:

@@ -16,7 +16,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictModuleBase, TensorDictSequential
 from torch import nn
 
-from rlpipe.errors import check
+from rlpipe.errors import RlpipeError, check
 from rlpipe.models import NumpyForward
 
 __all__ = ["NUMPY_ACTIVATIONS", "PopulationPolicy", "batched_call", "numpy_layer"]
@@ -38,10 +38,10 @@ class PopulationPolicy:
         self.steps: list[tuple[Callable[..., np.ndarray], list[Any], Any]] = []
         offset = 0
         for module in modules:
-            check(
-                isinstance(module, TensorDictModule) and len(module.out_keys) == 1,
-                f"the policy must be made of TensorDictModules with one output, got {module}",
-            )
+            if not (isinstance(module, TensorDictModule) and len(module.out_keys) == 1):
+                raise RlpipeError(
+                    f"the policy must be made of TensorDictModules with one output, got {module}"
+                )
             params = {}
             for name, param in module.module.named_parameters():
                 params[name] = flat[:, offset : offset + param.numel()].view(-1, *param.shape)
