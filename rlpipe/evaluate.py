@@ -4,8 +4,8 @@ Loads a run's config (``run_dir=latest``: the newest run under ``outputs/``) and
 checkpoint (``checkpoint=best``: the best evaluation's; ``checkpoint=<file>``), runs greedy
 episodes (``render=human``: live in a window), prints mean ± std, min, max and the mean episode
 length, and writes a JSON summary (plus, with ``video=true``, an mp4 of ``video_episodes`` more
-greedy episodes). ``policy=random`` and
-``policy=heuristic`` (the notebook's hand-written BipedalWalker controller) are baselines on the
+greedy episodes). ``policy=random``, ``policy=naive`` (the notebook's hand-written BipedalWalker
+controller) and ``policy=heuristic`` (a hand-written BipedalWalker gait) are baselines on the
 run's env, or on any ``env=<option>`` without a run dir (their summary goes to
 ``outputs/evaluation/<env>-<policy>.json``). The output location is checked before any episode
 runs. A run dir's ``env.id`` of the form ``module:Id`` (which imports ``module``) is refused
@@ -37,13 +37,14 @@ from rlpipe.envs import make_env
 from rlpipe.episodes import EvalResult, eval_envs, evaluate
 from rlpipe.errors import check
 from rlpipe.files import check_writable
-from rlpipe.heuristic import heuristic_policy, random_policy
+from rlpipe.heuristic import heuristic_policy, naive_policy, random_policy
 from rlpipe.loggers import require_extra
 from rlpipe.rundir import latest_run, load_config, load_run
 from rlpipe.runtime import resolve_device, seed_everything
 from rlpipe.video import check_display, frame_rate, make_render_env, record_episode, write_mp4
 
-POLICIES = ("trained", "random", "heuristic")
+POLICIES = ("trained", "random", "naive", "heuristic")
+BASELINES = {"random": random_policy, "naive": naive_policy, "heuristic": heuristic_policy}
 BASELINES_DIR = Path("outputs") / "evaluation"  # summaries of baselines without a run dir
 
 
@@ -55,7 +56,7 @@ class EvaluateConfig:
     run_dir: str | None = None
     # a file in <run_dir>/checkpoints; best: the best evaluation's; null: the newest
     checkpoint: str | None = None
-    policy: str = "trained"  # trained | random | heuristic
+    policy: str = "trained"  # trained | random | naive | heuristic
     episodes: int = 10
     # human: watch the episodes live in a window (one env copy, at the env's frame rate)
     render: str | None = None
@@ -112,8 +113,7 @@ def _policy(cfg: EvaluateConfig, stack: ExitStack) -> tuple[TensorDictModuleBase
     )
     probe = make_env(env_cfg, num_envs=1)
     stack.callback(probe.close)
-    factory = random_policy if cfg.policy == "random" else heuristic_policy
-    return factory(probe), env_cfg, cfg.policy
+    return BASELINES[cfg.policy](probe), env_cfg, cfg.policy
 
 
 def _out_path(cfg: EvaluateConfig, env_cfg: EnvConfig, name: str) -> Path:

@@ -78,6 +78,22 @@ def test_evaluate_random_baseline(tmp_path: Path) -> None:
     assert len(summary["returns"]) == 3
 
 
+@pytest.mark.parametrize("policy", ["naive", "heuristic"])
+def test_evaluate_walker_baselines(tmp_path: Path, policy: str) -> None:
+    out = tmp_path / f"{policy}.json"
+    proc = run_module(
+        "rlpipe.evaluate",
+        f"policy={policy}",
+        "env=bipedal",
+        "episodes=2",
+        f"out={out}",
+        cwd=tmp_path,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.startswith(f"rlpipe: {policy} on BipedalWalker-v3: return")
+    assert len(json.loads(out.read_text())["returns"]) == 2
+
+
 @pytest.mark.skipif(importlib.util.find_spec("imageio") is None, reason="needs rlpipe[video]")
 def test_evaluate_video(run_dir: Path, tmp_path: Path) -> None:
     out = tmp_path / "greedy.json"
@@ -138,7 +154,8 @@ def test_latest_run_best_checkpoint_live_window_and_a_longer_video(tmp_path: Pat
         (["policy=best", "env=cartpole"], "policy must be one of"),
         (["episodes=3"], "policy=trained needs run_dir"),
         (["policy=random"], "pass run_dir="),
-        (["policy=heuristic", "env=cartpole"], "BipedalWalker controller"),
+        (["policy=heuristic", "env=cartpole"], "policy=heuristic is a hand-written BipedalWalker"),
+        (["policy=naive", "env=cartpole"], "policy=naive is a hand-written BipedalWalker"),
     ],
 )
 def test_evaluate_bad_input(

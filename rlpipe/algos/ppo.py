@@ -87,6 +87,7 @@ class PPO(EnvAlgorithm):
             critic_coeff=cfg.critic_coef,
             loss_critic_type="l2",
             normalize_advantage=True,
+            functional=False,  # the modules' own parameters: no swap into them on every call
         )
         self.loss.set_keys(action=sample_key)
         self.loss.to(device)
