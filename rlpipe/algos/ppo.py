@@ -3,6 +3,7 @@ batched env, GAE advantages and ClipPPOLoss over minibatch epochs."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -30,6 +31,7 @@ class PPOConfig(AlgoConfig):
     hidden_sizes: list[int] = checked([64, 64], "sizes")  # actor's and critic's (tanh MLPs)
     lr: float = checked(3e-4, "positive")
     anneal_lr: bool = False  # linearly to 0 over algo.total_frames
+    anneal_clip: bool = False  # clip_epsilon, likewise (the RL Zoo's lin_0.2)
     frames_per_batch: int = checked(2048, "at_least_one")  # one rollout (across all env copies)
     epochs: int = checked(10, "at_least_one")  # passes over each rollout
     minibatch_size: int = checked(64, "at_least_one")
@@ -40,6 +42,7 @@ class PPOConfig(AlgoConfig):
     critic_coef: float = checked(0.5, "positive")
     max_grad_norm: float = checked(0.5, "positive")
     normalize_observations: bool = False  # a running mean/std in front of actor and critic
+    ortho_init: bool = True  # SB3's initialisation of the default networks (see PPO)
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -54,6 +57,15 @@ class PPOConfig(AlgoConfig):
         )
 
 
+def orthogonal_init(net: torch.nn.Module, last_gain: float) -> None:
+    """Orthogonal weights (gain √2, ``last_gain`` for the last linear layer), zero biases."""
+    layers = [m for m in net.modules() if isinstance(m, torch.nn.Linear)]
+    for i, layer in enumerate(layers):
+        torch.nn.init.orthogonal_(layer.weight, last_gain if i == len(layers) - 1 else math.sqrt(2))
+        if layer.bias is not None:
+            torch.nn.init.zeros_(layer.bias)
+
+
 class PPO(EnvAlgorithm):
     """Proximal policy optimisation (clipped) on a batched TorchRL env, discrete or continuous.
 
@@ -63,6 +75,9 @@ class PPO(EnvAlgorithm):
     ``cfg.minibatch_size`` frames on TorchRL's ClipPPOLoss (gradient norm clipped at
     ``cfg.max_grad_norm``). Continuous actions: a Gaussian with a free log-std per dimension,
     clipped into the bounds. ``network`` (or ``cfg.network``): the actor's network.
+    With ``cfg.ortho_init`` the default networks start as SB3's and CleanRL's do: orthogonal
+    weights (gain √2 in the hidden layers, 0.01 in the actor's last, 1 in the critic's) and zero
+    biases, so the first policy is close to uniform.
     """
 
     cfg: PPOConfig
@@ -106,16 +121,22 @@ class PPO(EnvAlgorithm):
             net = mlp(in_features, out_features, self.cfg.hidden_sizes, self.activation)
         else:
             net = self.network(in_features, out_features, outputs)
+        default = critic or (self._network is None and self.cfg.network is None)
+        if self.cfg.ortho_init and default:
+            orthogonal_init(net, last_gain=1.0 if critic else 0.01)
         return torch.nn.Sequential(self.normalizer, net)
 
     def train_step(self) -> Metrics:
         batch = self.collect()
         self.frames += batch.numel()
         self.iterations += 1
-        if self.cfg.anneal_lr and self.cfg.total_frames:
+        if self.cfg.total_frames:
             left = max(1.0 - self.frames / self.cfg.total_frames, 0.0)
-            for group in self.optimizer.param_groups:
-                group["lr"] = self.cfg.lr * left
+            if self.cfg.anneal_lr:
+                for group in self.optimizer.param_groups:
+                    group["lr"] = self.cfg.lr * left
+            if self.cfg.anneal_clip:  # a buffer of the loss: checkpoints hold it
+                self.loss.clip_epsilon.fill_(self.cfg.clip_epsilon * left)
         with torch.no_grad():
             self.advantage(batch)
         data = batch.reshape(-1)
