@@ -48,6 +48,39 @@ def test_a_step_computes_advantages_and_moves_actor_and_critic():
     algo.close()
 
 
+def test_schedules_anneal_lr_and_clip_range_over_the_run_and_resume():
+    algo = ppo("CartPole-v1", **SMALL, lr=1e-3, anneal_lr=True, anneal_clip=True, total_frames=256)
+    algo.train_step()
+    algo.train_step()  # half the run: both at half their start
+    assert algo.optimizer.param_groups[0]["lr"] == pytest.approx(5e-4)
+    assert float(algo.loss.clip_epsilon) == pytest.approx(0.1)
+    other = ppo("CartPole-v1", **SMALL, anneal_clip=True, total_frames=256)
+    other.load_state_dict(algo.state_dict())
+    assert float(other.loss.clip_epsilon) == pytest.approx(0.1)
+    algo.close()
+    other.close()
+
+
+def test_default_networks_start_orthogonal_and_a_users_network_is_left_alone():
+    algo = ppo("CartPole-v1", **SMALL)
+    linears = [m for m in algo.policy.modules() if isinstance(m, torch.nn.Linear)]
+    first, last = linears[0].weight, linears[-1].weight
+    gram = first.T @ first  # [64, 4]: orthogonal columns, gain √2
+    assert torch.allclose(gram, 2.0 * torch.eye(4), atol=1e-4)
+    assert last.norm(dim=1).max() <= 0.011 and not linears[0].bias.any()
+    algo.close()
+    torch.manual_seed(0)
+    mine = torch.nn.Linear(4, 2)
+    kept = mine.weight.detach().clone()
+    algo = PPO(
+        partial(make_env, EnvConfig(id="CartPole-v1", num_envs=2), seed=0),
+        PPOConfig(**SMALL),
+        network=mine,
+    )
+    assert torch.equal(mine.weight, kept)
+    algo.close()
+
+
 def test_observation_normaliser_follows_the_rollouts_and_is_saved():
     algo = ppo("Pendulum-v1", **SMALL, normalize_observations=True)
     algo.train_step()

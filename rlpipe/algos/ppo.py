@@ -121,7 +121,7 @@ class PPO(EnvAlgorithm):
             net = mlp(in_features, out_features, self.cfg.hidden_sizes, self.activation)
         else:
             net = self.network(in_features, out_features, outputs)
-        default = critic or (self._network is None and self.cfg.network is None)
+        default = critic or (self._network is None and not self.cfg.network)
         if self.cfg.ortho_init and default:
             orthogonal_init(net, last_gain=1.0 if critic else 0.01)
         return torch.nn.Sequential(self.normalizer, net)
