@@ -89,6 +89,33 @@ ALGOS = {
         "eval_episodes=1",
         "env.max_episode_steps=50",
     ],
+    "ppo": [
+        "algo=ppo",
+        "env=pendulum",
+        "total_frames=600",
+        "algo.frames_per_batch=100",
+        "algo.minibatch_size=50",
+        "algo.epochs=2",
+        "algo.anneal_lr=true",
+        "algo.normalize_observations=true",
+        "eval_every=200",
+        "checkpoint_every=200",
+        "eval_episodes=1",
+        "env.max_episode_steps=50",
+    ],
+    "sac": [
+        "algo=sac",
+        "env=pendulum",
+        "total_frames=300",
+        "algo.learning_starts=50",
+        "algo.batch_size=32",
+        "algo.frames_per_batch=10",
+        "algo.updates_per_batch=5",
+        "eval_every=100",
+        "checkpoint_every=100",
+        "eval_episodes=1",
+        "env.max_episode_steps=50",
+    ],
 }
 # The kill matrix covers every fault point in chains of runs in one run dir: each run resumes the
 # dir the previous one's fault left (the same command, the next fault), the last runs clean. A
