@@ -5,6 +5,7 @@ comparisons of many (``python -m rlpipe.plot``). Reading the metric CSVs and gro
 from __future__ import annotations
 
 import os
+import textwrap
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -111,6 +112,7 @@ def aligned(runs: Sequence[Path], metric: str) -> tuple[np.ndarray, np.ndarray]:
 # what a metric is, for titles (any other metric is named by its key)
 METRIC_NAMES = {EVAL_METRIC: "greedy evaluation return", "train/episode_return": "training return"}
 MARKERS_UP_TO = 40  # points per line: markers on each point up to this many
+LEGEND_WIDTH, LEGEND_LINES = 60, 3  # a legend entry's characters per line, lines at most
 
 
 def run_identity(run: Path) -> tuple[str, str]:
@@ -192,11 +194,13 @@ def groups_figure(
 
 
 def _legend(label: str, *, several_envs: bool) -> str:
-    """A group's legend entry: its label without the env (the panel names it)."""
-    if not several_envs:
-        return label
-    kept = [o for o in label.split() if not o.lstrip("+~").startswith(("env=", "env.id="))]
-    return " ".join(kept)
+    """A group's legend entry: its label without the env (the panel names it), wrapped to
+    :data:`LEGEND_WIDTH` characters and at most :data:`LEGEND_LINES` lines."""
+    if several_envs:
+        kept = [o for o in label.split() if not o.lstrip("+~").startswith(("env=", "env.id="))]
+        label = " ".join(kept)
+    short = textwrap.shorten(label, LEGEND_WIDTH * LEGEND_LINES, placeholder=" …")
+    return "\n".join(textwrap.wrap(short, LEGEND_WIDTH))
 
 
 def _honest_range(ax: Axes) -> None:

@@ -108,7 +108,14 @@ def _numpy(value: Any) -> Any:
 
 
 def _rollout_result(*values: Any) -> RolloutResult:
-    return RolloutResult(*(torch.as_tensor(v) if isinstance(v, np.ndarray) else v for v in values))
+    return RolloutResult(*map(_tensor, values))
+
+
+def _tensor(value: Any) -> Any:
+    if not isinstance(value, np.ndarray):
+        return value
+    # arrays from Ray's object store are read-only: copied, else torch warns
+    return torch.as_tensor(value if value.flags.writeable else value.copy())
 
 
 # wrappers that only check call order or count steps: a rollout steps the env inside them
