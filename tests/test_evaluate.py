@@ -66,32 +66,29 @@ def test_evaluate_trained_run(run_dir: Path, tmp_path: Path) -> None:
     assert summary["video"] is None
 
 
-def test_evaluate_random_baseline(tmp_path: Path) -> None:
-    out = tmp_path / "random.json"
-    proc = run_module(
-        "rlpipe.evaluate", "policy=random", "env=cartpole", "episodes=3", f"out={out}", cwd=tmp_path
-    )
-    assert proc.returncode == 0, proc.stderr
-    assert proc.stdout.startswith("rlpipe: random on CartPole-v1: return")
-    summary = json.loads(out.read_text())
-    assert summary["policy"] == "random" and summary["checkpoint"] is None
-    assert len(summary["returns"]) == 3
-
-
-@pytest.mark.parametrize("policy", ["naive", "heuristic"])
-def test_evaluate_walker_baselines(tmp_path: Path, policy: str) -> None:
+@pytest.mark.parametrize(
+    ("policy", "env", "env_id"),
+    [
+        ("random", "cartpole", "CartPole-v1"),
+        ("naive", "bipedal", "BipedalWalker-v3"),
+        ("heuristic", "bipedal", "BipedalWalker-v3"),
+    ],
+)
+def test_evaluate_baselines(tmp_path: Path, policy: str, env: str, env_id: str) -> None:
     out = tmp_path / f"{policy}.json"
     proc = run_module(
         "rlpipe.evaluate",
         f"policy={policy}",
-        "env=bipedal",
+        f"env={env}",
         "episodes=2",
         f"out={out}",
         cwd=tmp_path,
     )
     assert proc.returncode == 0, proc.stderr
-    assert proc.stdout.startswith(f"rlpipe: {policy} on BipedalWalker-v3: return")
-    assert len(json.loads(out.read_text())["returns"]) == 2
+    assert proc.stdout.startswith(f"rlpipe: {policy} on {env_id}: return")
+    summary = json.loads(out.read_text())
+    assert summary["policy"] == policy and summary["checkpoint"] is None
+    assert len(summary["returns"]) == 2
 
 
 @pytest.mark.skipif(importlib.util.find_spec("imageio") is None, reason="needs rlpipe[video]")
