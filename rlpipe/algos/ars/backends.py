@@ -214,7 +214,6 @@ class _Processes(_Pool):
 
     def __init__(self, units: _Units, population: int, workers: int) -> None:
         super().__init__(units, population, workers)
-        self._units, self._population = units, population
         self._here: _InProcess | None = None  # this process's own env copies
         # "pool"/"here" -> (wall seconds, env steps) of its latest iteration
         self._timed: dict[str, tuple[float, int]] = {}
