@@ -98,7 +98,9 @@ class PPO(EnvAlgorithm):
             actor,
             critic,
             clip_epsilon=cfg.clip_epsilon,
+            entropy_bonus=cfg.entropy_coef > 0,  # no entropy term to compute otherwise
             entropy_coeff=cfg.entropy_coef,
+            log_explained_variance=False,
             critic_coeff=cfg.critic_coef,
             loss_critic_type="l2",
             normalize_advantage=True,
@@ -110,7 +112,8 @@ class PPO(EnvAlgorithm):
         self.advantage = GAE(
             gamma=cfg.gamma, lmbda=cfg.gae_lambda, value_network=critic, average_gae=False
         )
-        self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=cfg.lr, eps=1e-5)
+        self._params = list(self.loss.parameters())
+        self.optimizer = torch.optim.Adam(self._params, lr=cfg.lr, eps=1e-5, fused=True)
         self.make_collector(env, self.policy, cfg.frames_per_batch)
 
     def _normalized(
@@ -142,13 +145,11 @@ class PPO(EnvAlgorithm):
         data = batch.reshape(-1)
         losses = []
         for _ in range(self.cfg.epochs):
-            for index in torch.randperm(len(data), device=self.device).split(
-                self.cfg.minibatch_size
-            ):
-                loss = self._loss(data[index])
+            for minibatch in self._minibatches(data):
+                loss = self._loss(minibatch)
                 self.optimizer.zero_grad(set_to_none=True)
                 loss.backward()
-                torch.nn.utils.clip_grad_norm_(self.loss.parameters(), self.cfg.max_grad_norm)
+                torch.nn.utils.clip_grad_norm_(self._params, self.cfg.max_grad_norm)
                 self.optimizer.step()
                 losses.append(loss.detach())
         if self.cfg.normalize_observations:  # after the epochs: they saw what the rollout saw
@@ -157,6 +158,13 @@ class PPO(EnvAlgorithm):
         metrics: Metrics = {LOSS: float(torch.stack(losses).mean())}
         metrics.update(episode_metrics(batch))
         return metrics
+
+    def _minibatches(self, data: TensorDictBase) -> list[TensorDictBase]:
+        """One epoch's shuffled minibatches; the rollout itself when one minibatch holds it all."""
+        if self.cfg.minibatch_size >= len(data):  # a full-batch gradient: order does not matter
+            return [data]
+        index = torch.randperm(len(data), device=self.device)
+        return [data[i] for i in index.split(self.cfg.minibatch_size)]
 
     def _loss(self, minibatch: TensorDictBase) -> torch.Tensor:
         out = self.loss(minibatch)

@@ -101,7 +101,7 @@ class SAC(EnvAlgorithm):
         )
         self.loss.make_value_estimator(gamma=cfg.gamma)
         self.target_updater = SoftUpdate(self.loss, tau=cfg.tau)
-        self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=cfg.lr)
+        self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=cfg.lr, fused=True)
         self.buffer = ReplayBuffer(
             storage=LazyTensorStorage(cfg.buffer_size, device=self.device),
             batch_size=cfg.batch_size,
