@@ -31,6 +31,7 @@ import importlib.util
 import json
 import multiprocessing
 import os
+import shutil
 import statistics
 import subprocess
 import sys
@@ -70,6 +71,9 @@ class Preset:
     sb3: dict[str, Any] | None = None  # SB3 keyword arguments (RL Zoo's hyperparams/<algo>.yml)
     sb3_algo: str = "DQN"  # the SB3 class they are for
     sb3_envs: int = 1  # the Zoo's n_envs
+    # hours-long presets: both sides save at every eval, and a call that finds an interrupted
+    # run in --out continues it (rlpipe from its newest checkpoint, SB3 from its newest save)
+    resumable: bool = False
 
     @property
     def solved_bar(self) -> float:
@@ -227,6 +231,7 @@ PRESETS: dict[str, Preset] = {
             policy_kwargs=dict(log_std_init=-3, net_arch=[400, 300]),
         ),
         sb3_algo="SAC",
+        resumable=True,  # ~2.5 h per seed and side on 2 cores
     ),
 }
 
@@ -271,6 +276,7 @@ class Sb3Job:
     kwargs: dict[str, Any]
     algo: str = "DQN"
     n_envs: int = 1
+    save_dir: str | None = None  # resumable: the saves at every eval go here
 
 
 def greedy_returns(model: Any, envs: Any, episodes: int, seed: int) -> list[float]:
@@ -292,6 +298,46 @@ def greedy_returns(model: Any, envs: Any, episodes: int, seed: int) -> list[floa
     return returns
 
 
+@dataclass
+class Sb3Save:
+    """One save of an SB3 run: its model, its replay buffer (off-policy) and its evals so far."""
+
+    model: Path
+    replay: Path
+    evals: list[Any]
+
+
+class Sb3Saves:
+    """An SB3 run's saves, one dir each (``<frames>/``); ``progress.json`` names the newest
+    complete one, and is replaced only once that save is on disk, so a kill at any point
+    leaves the previous save to resume from."""
+
+    def __init__(self, root: Path) -> None:
+        self.root = root
+        self.progress = root / "progress.json"
+
+    def newest(self) -> Sb3Save | None:
+        if not self.progress.is_file():
+            return None
+        saved = json.loads(self.progress.read_text())
+        where = self.root / saved["dir"]
+        return Sb3Save(where / "model.zip", where / "replay.pkl", saved["evals"])
+
+    def save(self, model: Any, evals: list[Any]) -> None:
+        frames = str(model.num_timesteps)
+        where = self.root / frames
+        where.mkdir(parents=True, exist_ok=True)
+        model.save(where / "model.zip")
+        if hasattr(model, "save_replay_buffer"):
+            model.save_replay_buffer(where / "replay.pkl")
+        tmp = self.progress.with_suffix(".tmp")
+        tmp.write_text(json.dumps({"dir": frames, "evals": evals}))
+        os.replace(tmp, self.progress)
+        for old in self.root.iterdir():  # earlier saves: the newest is all a resume needs
+            if old.is_dir() and old.name != frames:
+                shutil.rmtree(old)
+
+
 def run_sb3(job: Sb3Job) -> dict[str, Any]:
     """Train SB3's ``job.algo`` as ``job`` says (one torch thread); evals and the final eval's
     mean."""
@@ -304,14 +350,17 @@ def run_sb3(job: Sb3Job) -> dict[str, Any]:
     torch.set_num_threads(1)
 
     class GreedyEval(BaseCallback):
-        """A greedy eval at the preset's cadence; eval time is kept off the training clock."""
+        """A greedy eval at the preset's cadence, then a save if resumable; eval and save time
+        are kept off the training clock, which continues from ``seconds`` on a resumed run."""
 
-        def __init__(self) -> None:
+        def __init__(
+            self, saves: Sb3Saves | None, evals: list[Any], seconds: float, frames: int
+        ) -> None:
             super().__init__()
             self.envs = gym.make_vec(job.env, num_envs=eval_envs(job.eval_episodes))
-            self.cadence = Cadence(job.eval_every, 0)
-            self.evals: list[tuple[int, float, float]] = []
-            self.start, self.eval_seconds = time.perf_counter(), 0.0
+            self.cadence = Cadence(job.eval_every, frames)
+            self.saves, self.evals, self.seconds = saves, [tuple(e) for e in evals], seconds
+            self.start, self.off_clock = time.perf_counter(), 0.0
 
         def _on_training_start(self) -> None:
             self.start = time.perf_counter()
@@ -325,14 +374,26 @@ def run_sb3(job: Sb3Job) -> dict[str, Any]:
             t0 = time.perf_counter()
             seed = job.seed + 10_000 + len(self.evals)
             mean = float(np.mean(greedy_returns(self.model, self.envs, job.eval_episodes, seed)))
-            self.evals.append((self.num_timesteps, mean, t0 - self.start - self.eval_seconds))
-            self.eval_seconds += time.perf_counter() - t0
+            trained = self.seconds + t0 - self.start - self.off_clock
+            self.evals.append((self.num_timesteps, mean, trained))
+            if self.saves is not None:
+                self.saves.save(self.model, self.evals)
+            self.off_clock += time.perf_counter() - t0
 
     env = make_vec_env(job.env, n_envs=job.n_envs, seed=job.seed)
     algo = getattr(stable_baselines3, job.algo)
-    model = algo("MlpPolicy", env, seed=job.seed, device="cpu", **job.kwargs)
-    callback = GreedyEval()
-    model.learn(job.frames, callback=callback)
+    saves = Sb3Saves(Path(job.save_dir)) if job.save_dir else None
+    progress = saves.newest() if saves else None
+    if progress is None:
+        model = algo("MlpPolicy", env, seed=job.seed, device="cpu", **job.kwargs)
+        callback = GreedyEval(saves, [], 0.0, 0)
+    else:
+        model = algo.load(progress.model, env=env, device="cpu")
+        if progress.replay.is_file():
+            model.load_replay_buffer(progress.replay)
+        callback = GreedyEval(saves, progress.evals, progress.evals[-1][2], model.num_timesteps)
+    left = max(job.frames - model.num_timesteps, 0)
+    model.learn(left, callback=callback, reset_num_timesteps=False)
     if not callback.evals or callback.evals[-1][0] != model.num_timesteps:
         callback.evaluate()  # like rlpipe's runner: always an eval at the end
     callback.envs.close()
@@ -355,6 +416,7 @@ def sb3_job(preset: Preset, cfg: Config, seed: int, out: Path) -> Run:
         preset.sb3,
         preset.sb3_algo,
         preset.sb3_envs,
+        str(out / "sb3-saves") if preset.resumable else None,
     )
     saved = out / "sb3.json"
     reused = saved.is_file()  # a finished run of an earlier call with this --out
@@ -381,7 +443,9 @@ def _call(args: list[str], log: Path, cwd: Path) -> None:
         raise RuntimeError(f"exit {code}: {lines[-1] if lines else '(no output)'} (log: {log})")
 
 
-def rlpipe_job(preset: Preset, seed: int, frames: int | None, episodes: int, out: Path) -> Run:
+def rlpipe_job(
+    preset: Preset, cfg: Config, seed: int, frames: int | None, episodes: int, out: Path
+) -> Run:
     """Train the preset as a user would, evaluate it, read its metrics."""
     run_dir = out / "run"  # not "rlpipe": cwd is on a -m module's path and would shadow it
     out.mkdir(parents=True, exist_ok=True)
@@ -390,7 +454,8 @@ def rlpipe_job(preset: Preset, seed: int, frames: int | None, episodes: int, out
         f"+experiment={preset.experiment}",
         f"seed={seed}",
         "progress=false",
-        "checkpoint_every=0",
+        # resumable: a checkpoint at every eval, and the same command continues a killed run
+        f"checkpoint_every={cfg.eval_every if preset.resumable else 0}",
         f"hydra.run.dir={run_dir}",
     ] + ([f"total_frames={frames}"] if frames is not None else [])
     finals = sorted(
@@ -724,7 +789,15 @@ def main() -> None:
             episodes = args.final_episodes or preset.final_episodes
             for seed in args.seeds or preset.seeds:
                 where = out / preset.experiment / f"seed{seed}"
-                ours = partial(rlpipe_job, preset, seed, args.frames, episodes, where)
+                ours = partial(
+                    rlpipe_job,
+                    preset,
+                    configs[preset.experiment],
+                    seed,
+                    args.frames,
+                    episodes,
+                    where,
+                )
                 group = [(preset.experiment, seed, "rlpipe", ours)]
                 if args.sb3 and preset.sb3 is not None:
                     sb3 = replace(preset, final_episodes=episodes)
