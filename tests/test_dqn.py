@@ -7,9 +7,11 @@ from functools import partial
 
 import pytest
 import torch
+from tensordict import TensorDict
+from torchrl.data.postprocs import MultiStep
 
 from rlpipe.algos import DQN, Algorithm, DQNConfig
-from rlpipe.algos.dqn import epsilon, learning_rate
+from rlpipe.algos.dqn import epsilon, learning_rate, n_step_transitions
 from rlpipe.config import EnvConfig
 from rlpipe.envs import make_env
 from rlpipe.errors import RlpipeError
@@ -68,6 +70,48 @@ def test_soft_update_moves_target_by_tau(dqn):
     dqn.target_updater.step()
     for key, value in target.items(True, True):
         torch.testing.assert_close(value, dqn.cfg.tau * online[key])
+
+
+def test_n_step_transitions_stop_at_episode_ends_and_do_not_bootstrap_past_a_terminal():
+    # one env copy, 6 steps; rewards 1..6; the episode terminates at step 2, then a new one
+    # runs to the batch's end. Observations are the step index.
+    steps = torch.arange(6.0).reshape(1, 6, 1)
+    flag = torch.zeros(1, 6, 1, dtype=torch.bool)
+    flag[0, 2] = True
+    batch = TensorDict(
+        {
+            "observation": steps,
+            "next": {
+                "observation": steps + 0.5,
+                "reward": steps + 1,
+                "done": flag.clone(),
+                "terminated": flag.clone(),
+            },
+        },
+        batch_size=[1, 6],
+    )
+    out = n_step_transitions(batch, MultiStep(gamma=0.5, n_steps=3))
+    assert out["steps_to_next_obs"][0].tolist() == [3, 2, 1, 3, 2, 1]
+    # 1 + .5*2 + .25*3; 2 + .5*3; 3; 4 + .5*5 + .25*6; 5 + .5*6; 6
+    assert out["next", "reward"][0, :, 0].tolist() == [2.75, 3.5, 3.0, 8.0, 8.0, 6.0]
+    assert out["next", "observation"][0, :, 0].tolist() == [2.5, 2.5, 2.5, 5.5, 5.5, 5.5]
+    # the windows of steps 0-2 end in the terminal state: none of them bootstraps
+    assert out["next", "terminated"][0, :, 0].tolist() == [True, True, True, False, False, False]
+    assert out["next", "done"][0, :, 0].tolist() == [True, True, True, False, False, False]
+    assert batch["next", "reward"][0, 0, 0] == 1  # the collected batch is left as it was
+
+
+def test_n_step_dqn_stores_the_discount_exponent_and_trains():
+    torch.manual_seed(0)
+    algo = DQN(partial(make_env, EnvConfig(num_envs=2), seed=0), DQNConfig(**SMALL, n_steps=3))
+    try:
+        for _ in range(4):
+            metrics = algo.train_step()
+        sample = algo.buffer.sample()
+        assert set(sample["steps_to_next_obs"].unique().tolist()) <= {1, 2, 3}
+        assert math.isfinite(metrics["train/loss"])
+    finally:
+        algo.close()
 
 
 def test_epsilon_schedules():

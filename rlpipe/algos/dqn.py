@@ -7,8 +7,10 @@ import math
 from dataclasses import dataclass
 
 import torch
+from tensordict import TensorDictBase
 from tensordict.nn import TensorDictSequential
 from torchrl.data import LazyTensorStorage, ReplayBuffer
+from torchrl.data.postprocs import MultiStep
 from torchrl.envs import EnvBase
 from torchrl.modules import EGreedyModule, QValueActor
 from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate
@@ -39,6 +41,10 @@ class DQNConfig(AlgoConfig):
     batch_size: int = checked(128, "at_least_one")
     buffer_size: int = 10_000
     gamma: float = checked(0.99, "discount")
+    # n-step returns (TorchRL's MultiStep on each collected batch): each stored transition
+    # sums up to n discounted rewards and bootstraps from the state n steps on; a window stops
+    # at an episode's end and at the batch's end (frames_per_batch / num_envs steps)
+    n_steps: int = checked(1, "at_least_one")
     # soft target update: target <- tau * online + (1 - tau) * target
     tau: float = checked(0.005, "discount")
     # frames between target updates (0: after every gradient step); with tau=1, a hard copy
@@ -94,6 +100,19 @@ def learning_rate(frames: int, cfg: DQNConfig) -> float:
         return cfg.lr
     fraction = min(frames / cfg.total_frames, 1.0)
     return cfg.lr + fraction * (cfg.lr_end - cfg.lr)
+
+
+def n_step_transitions(batch: TensorDictBase, multistep: MultiStep) -> TensorDictBase:
+    """``batch`` (``[env copies, steps]``) with n-step rewards, next observations and
+    ``steps_to_next_obs`` (TorchRL's :class:`MultiStep`), and with the end-of-episode flags of
+    each window's last step, so that a window reaching a terminal state does not bootstrap."""
+    out = multistep(batch)
+    steps = torch.arange(batch.shape[-1], device=batch.device)
+    last = (steps + out["steps_to_next_obs"] - 1).unsqueeze(-1)  # each window's last step
+    for key in ("done", "terminated", "truncated"):
+        if ("next", key) in batch.keys(True):
+            out["next", key] = batch["next", key].gather(1, last)
+    return out
 
 
 class DQN(EnvAlgorithm):
@@ -153,6 +172,7 @@ class DQN(EnvAlgorithm):
             storage=LazyTensorStorage(cfg.buffer_size, device=self.device),
             batch_size=cfg.batch_size,
         )
+        self.multistep = MultiStep(cfg.gamma, cfg.n_steps) if cfg.n_steps > 1 else None
         self.make_collector(
             env, TensorDictSequential(self.policy, self.exploration), cfg.frames_per_batch
         )
@@ -162,7 +182,11 @@ class DQN(EnvAlgorithm):
         self.frames += batch.numel()
         self.iterations += 1
         self._follow_schedules()
-        self.buffer.extend(batch.reshape(-1).select(*TRANSITION_KEYS))
+        if self.multistep is None:
+            self.buffer.extend(batch.reshape(-1).select(*TRANSITION_KEYS))
+        else:
+            stored = n_step_transitions(batch, self.multistep)
+            self.buffer.extend(stored.reshape(-1).select(*TRANSITION_KEYS, "steps_to_next_obs"))
         metrics: Metrics = {"train/epsilon": float(self.exploration.eps)}
         metrics.update(episode_metrics(batch))
         if len(self.buffer) < max(self.cfg.learning_starts, self.cfg.batch_size):
