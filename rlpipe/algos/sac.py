@@ -98,6 +98,7 @@ class SAC(EnvAlgorithm):
             alpha_init=cfg.alpha_init,
             target_entropy=-float(size) if cfg.target_entropy is None else cfg.target_entropy,
             loss_function="l2",
+            deactivate_vmap=True,  # the two critics in a loop: cheaper than torch.vmap on CPU
         )
         self.loss.make_value_estimator(gamma=cfg.gamma)
         self.target_updater = SoftUpdate(self.loss, tau=cfg.tau)
