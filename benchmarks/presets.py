@@ -15,7 +15,10 @@ cadence and episodes (greedy, vectorised eval envs, eval time off the clock), th
 eval.
 ``--jobs`` runs go at once; rlpipe seed s and SB3 seed s start side by side. Runs that an earlier
 call finished in ``--out`` are read instead of run again, so an interrupted benchmark continues
-and a table can be made again from its runs.
+and a table can be made again from its runs. The hours-long presets (``sac_bipedal``) also save
+at every eval on both sides (rlpipe's checkpoints; SB3's model and replay buffer under
+``sb3-saves/``), so a call with the same ``--out`` continues an interrupted run from its last
+eval, training clocks included.
 
     pip install -e ".[dev,bench]"
     python benchmarks/presets.py --sb3 --append BENCHMARKS.md             # everything (long)
