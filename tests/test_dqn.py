@@ -114,6 +114,13 @@ def test_n_step_dqn_stores_the_discount_exponent_and_trains():
         algo.close()
 
 
+def test_n_steps_beyond_one_batch_is_refused():
+    with pytest.raises(
+        RlpipeError, match=r"algo.n_steps \(5\) is more than the 4 steps.*at least 10"
+    ):
+        DQN(partial(make_env, EnvConfig(num_envs=2), seed=0), DQNConfig(**SMALL, n_steps=5))
+
+
 def test_epsilon_schedules():
     cfg = DQNConfig()  # notebook: 0.9 -> 0.05, exponential with time constant 1000
     assert epsilon(0, cfg) == pytest.approx(0.9)

@@ -36,6 +36,13 @@ TRANSITION_KEYS = (
 )
 
 
+def batch_steps(env: EnvBase, frames: int) -> tuple[int, int]:
+    """``(copies, steps)``: the env's copies, and the steps each takes for ``frames`` frames
+    (rounded up to whole steps of all copies)."""
+    copies = max(env.batch_size.numel(), 1)
+    return copies, math.ceil(frames / copies)
+
+
 @runtime_checkable
 class Algorithm(Protocol):
     """What the runner needs: a greedy policy, a frame counter, one iteration, and state.
@@ -165,8 +172,7 @@ class EnvAlgorithm:
     ) -> None:
         """An endless TorchRL ``Collector`` (``self.collector``) of ``frames_per_batch`` frames per
         batch, rounded up to whole steps of the env's copies; policy and storage on the device."""
-        self._copies = max(env.batch_size.numel(), 1)
-        self._steps = math.ceil(frames_per_batch / self._copies)
+        self._copies, self._steps = batch_steps(env, frames_per_batch)
         self._cut = BatchCut()
         self.collector = Collector(
             env,

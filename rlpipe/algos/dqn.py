@@ -15,7 +15,14 @@ from torchrl.envs import EnvBase
 from torchrl.modules import EGreedyModule, QValueActor
 from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate
 
-from rlpipe.algos.base import LOSS, TRANSITION_KEYS, EnvAlgorithm, Metrics, episode_metrics
+from rlpipe.algos.base import (
+    LOSS,
+    TRANSITION_KEYS,
+    EnvAlgorithm,
+    Metrics,
+    batch_steps,
+    episode_metrics,
+)
 from rlpipe.cadence import Cadence
 from rlpipe.config import AlgoConfig, checked
 from rlpipe.envs import is_discrete, observation_size
@@ -171,6 +178,13 @@ class DQN(EnvAlgorithm):
         self.buffer = ReplayBuffer(
             storage=LazyTensorStorage(cfg.buffer_size, device=self.device),
             batch_size=cfg.batch_size,
+        )
+        copies, steps = batch_steps(env, cfg.frames_per_batch)
+        check(  # a window stops at the batch's end: more steps than a batch holds never happen
+            cfg.n_steps <= steps,
+            f"algo.n_steps ({cfg.n_steps}) is more than the {steps} steps each env copy takes "
+            f"per batch (algo.frames_per_batch / env.num_envs); raise algo.frames_per_batch to "
+            f"at least {cfg.n_steps * copies}",
         )
         self.multistep = MultiStep(cfg.gamma, cfg.n_steps) if cfg.n_steps > 1 else None
         self.make_collector(

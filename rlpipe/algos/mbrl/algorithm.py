@@ -3,7 +3,6 @@ models, plan on them (PETS-style, deterministic ensemble). See :mod:`rlpipe.algo
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
@@ -14,7 +13,7 @@ from torchrl.data import Bounded, LazyTensorStorage, ReplayBuffer
 from torchrl.envs import EnvBase, ExplorationType
 from torchrl.envs.utils import exploration_type
 
-from rlpipe.algos.base import EnvAlgorithm, Metrics, episode_metrics
+from rlpipe.algos.base import EnvAlgorithm, Metrics, batch_steps, episode_metrics
 from rlpipe.algos.mbrl.planning import ActionCoder, Planner, WorldModel
 from rlpipe.config import AlgoConfig, checked
 from rlpipe.envs import is_discrete, num_actions, observation_size
@@ -186,8 +185,7 @@ class MBRL(EnvAlgorithm):
             storage=LazyTensorStorage(cfg.buffer_size, device=self.device),
             batch_size=cfg.batch_size,
         )
-        num_envs = max(env.batch_size.numel(), 1)
-        steps = math.ceil(cfg.frames_per_batch / num_envs)  # per iteration
+        num_envs, steps = batch_steps(env, cfg.frames_per_batch)  # steps per iteration
         self.iteration_frames = steps * num_envs
         sub_batch = _sub_batch_steps(steps) * num_envs
         self.make_collector(env, self.policy, sub_batch)
