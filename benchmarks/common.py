@@ -6,6 +6,7 @@ import argparse
 import csv
 import os
 import platform
+import re
 import time
 from collections.abc import Sequence
 from datetime import date
@@ -120,6 +121,27 @@ def read_scalar(run_dir: Path, name: str) -> list[tuple[int, float]]:
     path = run_dir / "metrics" / "scalars" / f"{name}.csv"
     with open(path) as f:
         return [(int(step), float(value)) for step, value in csv.reader(f)]
+
+
+def replace_section(path: str | Path, text: str) -> None:
+    """Put ``text`` (a Markdown section starting with its ``## `` heading) into ``path``: in place
+    of the section with the same heading, or at the end; the rest of the file is kept."""
+    path = Path(path)
+    heading = text.splitlines()[0]
+    old = path.read_text() if path.is_file() else ""
+    sections = re.split(r"(?m)^(?=## )", old)
+    kept = [s for s in sections if s.splitlines()[:1] != [heading]]
+    at = next((i for i, s in enumerate(sections) if s.splitlines()[:1] == [heading]), len(kept))
+    kept.insert(at, text.rstrip("\n") + "\n\n")
+    path.write_text("".join(kept).rstrip("\n") + "\n")
+
+
+def publish_section(text: str, append: str | Path | None) -> None:
+    """Print a benchmark's section and, with ``append``, put it in that Markdown file in place of
+    its previous version (:func:`replace_section`)."""
+    print(text)
+    if append:
+        replace_section(append, text)
 
 
 def publish(report: str, append: Path | None) -> None:

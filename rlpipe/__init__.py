@@ -19,15 +19,16 @@ Building and running:
     compose_run      the Config python -m rlpipe <overrides> would run (presets from Python)
     make_env         num_envs copies of a gymnasium env as one batched TorchRL env
     make_algorithm   the algorithm named by cfg.name, built on envs from an env factory
-    ALGORITHMS       the registry (a dict): name -> (config class, algorithm class)
+    ALGORITHMS       the registry (a mapping): name -> (config class, algorithm class)
+    register         add an algorithm from outside the package to the registry
     DQN              deep Q-learning (discrete actions)
     Reinforce        REINFORCE, Monte-Carlo policy gradient (discrete or continuous)
     ARS              augmented random search, the runner's algorithm around an ARSSearch
     MBRL             model-based RL: a learned model and a planner
     PPO              proximal policy optimisation, clipped, with GAE
     SAC              soft actor-critic: twin Q, automatic entropy tuning
-    Algorithm        the protocol the Runner drives (isinstance checks it)
-    Runner           the one training loop: evaluations, metrics, checkpoints, summary.json
+    Algorithm        the base class of what the Runner drives: every hook it uses, declared
+    Runner           the one training loop: evaluations, metrics, signals, divergence checks
     RunResult        what a run reports: eval mean and std, frames, wall time, run dir
     Callback         hooks on the Runner: on_eval after each evaluation, on_end at the end
     make_logger      the TorchRL logger a LoggerConfig names
@@ -36,7 +37,8 @@ Building and running:
     EvalResult       returns and lengths of evaluated episodes, their mean and std
     RlpipeError      a problem the user can fix (a ValueError); the CLIs print one line
 
-Reading runs back:
+Run directories:
+    RunDir           one run's directory: its layout and every read and write of it
     load_run         a run rebuilt from its config.yaml and a checkpoint; a LoadedRun
     LoadedRun        a loaded run's cfg, algo (weights loaded) and checkpoint file
     find_runs        run dirs in or below some dirs (a sweep dir) that logged a metric
@@ -48,80 +50,72 @@ ARS pieces, usable on any policy:
     ARSSearch        augmented random search on a TensorDictModule's parameters; step()
     Normalizer       running observation mean and variance, standardising observations
 
-``__version__`` is the package's version.
+``__version__`` is the package's version. Every name is imported on first use: ``import rlpipe``
+loads no torch (the command line answers ``--help`` and config errors before torch loads).
 """
 
-from rlpipe.algos import (
-    ALGORITHMS,
-    ARS,
-    DQN,
-    MBRL,
-    PPO,
-    SAC,
-    Algorithm,
-    ARSConfig,
-    DQNConfig,
-    MBRLConfig,
-    PPOConfig,
-    Reinforce,
-    ReinforceConfig,
-    SACConfig,
-    make_algorithm,
-)
-from rlpipe.algos.ars import ARSSearch
-from rlpipe.callbacks import Callback
-from rlpipe.cli import compose_run
-from rlpipe.config import Config, EnvConfig, LoggerConfig
-from rlpipe.envs import make_env
-from rlpipe.episodes import EvalResult, evaluate
-from rlpipe.errors import RlpipeError
-from rlpipe.figures import plot_groups, plot_run
-from rlpipe.loggers import make_logger
-from rlpipe.metrics import find_runs, group_runs
-from rlpipe.normalizer import Normalizer
-from rlpipe.pipeline import train
-from rlpipe.rundir import LoadedRun, load_run
-from rlpipe.runner import Runner, RunResult
-from rlpipe.runtime import seed_everything
+from __future__ import annotations
+
+import importlib
+import os
+from typing import Any
 
 __version__ = "0.1.0"
 
-__all__ = [
-    "ALGORITHMS",
-    "ARS",
-    "ARSConfig",
-    "ARSSearch",
-    "DQN",
-    "Algorithm",
-    "Callback",
-    "Config",
-    "DQNConfig",
-    "EnvConfig",
-    "EvalResult",
-    "LoadedRun",
-    "LoggerConfig",
-    "MBRL",
-    "MBRLConfig",
-    "Normalizer",
-    "PPO",
-    "PPOConfig",
-    "Reinforce",
-    "ReinforceConfig",
-    "RlpipeError",
-    "RunResult",
-    "SAC",
-    "SACConfig",
-    "Runner",
-    "evaluate",
-    "find_runs",
-    "group_runs",
-    "load_run",
-    "make_algorithm",
-    "make_env",
-    "make_logger",
-    "plot_groups",
-    "plot_run",
-    "compose_run",
-    "seed_everything",
-    "train",
-]
+# TorchRL logs INFO lines (in colour) to stdout from its import on, with a handler it resets then:
+# rlpipe's console is its progress bar and summary line. WARNING unless you set the variable.
+os.environ.setdefault("RL_LOGGING_LEVEL", "WARNING")
+
+# public name -> the module that defines it
+_MODULES = {
+    **dict.fromkeys(("Config", "EnvConfig", "LoggerConfig"), "rlpipe.config"),
+    **dict.fromkeys(
+        ("ARSConfig", "DQNConfig", "MBRLConfig", "PPOConfig", "ReinforceConfig", "SACConfig"),
+        "rlpipe.algos.configs",
+    ),
+    "ALGORITHMS": "rlpipe.registry",
+    "register": "rlpipe.registry",
+    "make_algorithm": "rlpipe.algos",
+    "Algorithm": "rlpipe.algos.base",
+    "ARS": "rlpipe.algos.ars",
+    "ARSSearch": "rlpipe.algos.ars",
+    "DQN": "rlpipe.algos.dqn",
+    "MBRL": "rlpipe.algos.mbrl",
+    "PPO": "rlpipe.algos.ppo",
+    "Reinforce": "rlpipe.algos.reinforce",
+    "SAC": "rlpipe.algos.sac",
+    "Callback": "rlpipe.runner",
+    "Runner": "rlpipe.runner",
+    "RunResult": "rlpipe.outcomes",
+    "RunDir": "rlpipe.rundir",
+    "compose_run": "rlpipe.cli",
+    "make_env": "rlpipe.envs",
+    "EvalResult": "rlpipe.episodes",
+    "evaluate": "rlpipe.episodes",
+    "RlpipeError": "rlpipe.errors",
+    "plot_groups": "rlpipe.figures",
+    "plot_run": "rlpipe.figures",
+    "make_logger": "rlpipe.loggers",
+    "find_runs": "rlpipe.runs",
+    "group_runs": "rlpipe.runs",
+    "Normalizer": "rlpipe.normalizer",
+    "LoadedRun": "rlpipe.pipeline",
+    "load_run": "rlpipe.pipeline",
+    "train": "rlpipe.pipeline",
+    "seed_everything": "rlpipe.runtime",
+}
+
+__all__ = sorted(_MODULES)
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _MODULES:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(_MODULES[name]), name)
+    if name != "evaluate":  # rlpipe.evaluate is also a submodule: see rlpipe/evaluate.py
+        globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted([*globals(), *_MODULES])

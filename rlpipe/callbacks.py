@@ -1,10 +1,9 @@
-"""What a run records besides its metrics, as :class:`Callback` hooks on the :class:`Runner`:
-videos of greedy episodes, ``curve.png``, and closing the logger."""
+"""What a run records besides its metrics, as :class:`~rlpipe.runner.Callback` hooks on the
+:class:`~rlpipe.runner.Runner`: videos of greedy episodes, ``curve.png``, and closing the logger."""
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import torch
 
@@ -12,25 +11,12 @@ from rlpipe.config import Config, EnvConfig
 from rlpipe.episodes import EvalResult
 from rlpipe.figures import plot_run
 from rlpipe.loggers import log_artifacts, require_extra, takes_video
+from rlpipe.outcomes import RunResult
+from rlpipe.rundir import RunDir
+from rlpipe.runner import Callback, Runner
 from rlpipe.video import frame_rate, make_render_env, record_episode, write_mp4
 
-if TYPE_CHECKING:  # the runner calls these hooks
-    from rlpipe.runner import Runner, RunResult
-
-VIDEO_DIR = "videos"
-
-
-class Callback:
-    """Hooks into a :class:`~rlpipe.runner.Runner`: subclass and override the ones you need.
-
-    Every hook does nothing by default; pass instances as ``Runner(..., callbacks=[...])``.
-    """
-
-    def on_eval(self, runner: Runner, result: EvalResult) -> None:
-        """After each greedy evaluation (``runner.algo.frames`` frames in)."""
-
-    def on_end(self, runner: Runner, result: RunResult) -> None:
-        """After the final evaluation and checkpoint, before ``run`` returns."""
+__all__ = ["Callback", "CloseLogger", "CurveCallback", "VideoCallback", "make_callbacks"]
 
 
 class VideoCallback(Callback):
@@ -62,7 +48,7 @@ class VideoCallback(Callback):
         frames = record_episode(runner.algo.policy, self.env)
         self.last_frames = runner.algo.frames
         name = f"eval_{runner.algo.frames:012d}.mp4"
-        path = write_mp4(frames, runner.run_dir / VIDEO_DIR / name, frame_rate(self.env))
+        path = write_mp4(frames, runner.run_dir / RunDir.VIDEOS / name, frame_rate(self.env))
         if takes_video(runner.logger):
             video = torch.from_numpy(frames).permute(0, 3, 1, 2).unsqueeze(0)  # N T C H W
             runner.logger.log_video(
@@ -77,7 +63,9 @@ class CurveCallback(Callback):
 
     def on_end(self, runner: Runner, result: RunResult) -> None:
         curve = plot_run(runner.run_dir)
-        log_artifacts(runner.logger, [curve, *sorted((runner.run_dir / VIDEO_DIR).glob("*.mp4"))])
+        log_artifacts(
+            runner.logger, [curve, *sorted((runner.run_dir / RunDir.VIDEOS).glob("*.mp4"))]
+        )
 
 
 class CloseLogger(Callback):

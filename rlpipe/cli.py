@@ -4,26 +4,21 @@ shared opening, and one-line error reporting."""
 from __future__ import annotations
 
 import dataclasses
-import logging
-import os
 import re
-import shutil
 import sys
 from collections.abc import Callable, Iterator, Sequence
-from pathlib import Path
 from typing import Any, NoReturn
 
 from hydra import compose, initialize_config_module
 from hydra.core.config_store import ConfigStore
-from hydra.core.hydra_config import HydraConfig
 from hydra.errors import HydraException, MissingConfigException
 from omegaconf import MISSING, DictConfig, OmegaConf
 from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
 
-from rlpipe.algos import ALGORITHMS
 from rlpipe.config import Config, EnvConfig
 from rlpipe.errors import RlpipeError, check
-from rlpipe.runner import Interrupted
+from rlpipe.outcomes import Interrupted
+from rlpipe.registry import ALGORITHMS
 
 USER_ERRORS = (RlpipeError, HydraException, OmegaConfBaseException)
 # Hydra launcher/sweeper plugins and the rlpipe extra that installs each
@@ -40,8 +35,8 @@ def register_configs() -> None:
     store = ConfigStore.instance()
     # env.id has no default on the command line: every conf/env file (or env.id=...) sets it
     store.store(name="rlpipe_config", node=Config(env=EnvConfig(id=MISSING), algo=MISSING))
-    for name, (schema, _) in ALGORITHMS.items():
-        store.store(group="schema/algo", name=name, node=schema)
+    for name in ALGORITHMS:  # their configs only: no algorithm module (nor torch) is imported
+        store.store(group="schema/algo", name=name, node=ALGORITHMS.config(name))
 
 
 def unknown_keys(node: DictConfig, prefix: str = "") -> Iterator[str]:
@@ -84,25 +79,6 @@ def compose_run(*overrides: str) -> Config:
         return to_config(compose("config", overrides=open_entries(overrides)))
 
 
-def write_hydra_record(run_dir: str | Path, job_cfg: DictConfig) -> None:
-    """Write Hydra's record of the job (``.hydra/config.yaml`` from ``job_cfg``, ``hydra.yaml``,
-    ``overrides.yaml``) into ``run_dir`` unless it has one.
-
-    ``conf/config.yaml`` turns Hydra's own writing off (``hydra.output_subdir: null``): Hydra
-    writes before a job can check that the dir is its own. rlpipe writes the same files once
-    the run dir is checked, and a resumed run keeps the record of the run it continues.
-    """
-    record = Path(run_dir) / ".hydra"
-    try:
-        record.mkdir(parents=True)
-    except FileExistsError:
-        return
-    hydra_cfg = HydraConfig.get()
-    OmegaConf.save(job_cfg, record / "config.yaml")
-    OmegaConf.save(OmegaConf.create({"hydra": hydra_cfg}), record / "hydra.yaml")
-    OmegaConf.save(hydra_cfg.overrides.task, record / "overrides.yaml")
-
-
 def compose_config(name: str, overrides: Sequence[str]) -> Any:
     """Compose ``conf/<name>.yaml`` with ``key=value`` overrides into its dataclass object.
 
@@ -124,41 +100,15 @@ def compose_config(name: str, overrides: Sequence[str]) -> Any:
     return OmegaConf.to_object(cfg)
 
 
-def validate_overrides(argv: Sequence[str]) -> None:
-    """Compose ``python -m rlpipe``'s config from ``argv``'s overrides (flags, their values and
-    ``hydra`` keys left out) and run every check :func:`to_config` runs."""
-    overrides, skip = [], False
-    for arg in argv:
-        if skip or arg.startswith("-"):
-            skip = arg in ("-c", "--cfg", "-p", "--package", "-cn", "--config-name", "-cp")
-            continue
-        if not re.match(r"^[+~]{0,2}hydra[./]", arg):
-            overrides.append(arg)
-    with initialize_config_module("rlpipe.conf", version_base="1.3"):
-        to_config(compose("config", overrides=overrides))
-
-
-def check_launcher(argv: Sequence[str]) -> None:
-    """Refuse ``hydra/launcher=submitit_slurm`` where Slurm is not (no ``srun`` on the PATH)."""
-    launchers = [arg.partition("=")[2] for arg in argv if re.match(r"^\+{0,2}hydra/launcher=", arg)]
-    check(
-        not launchers or launchers[-1] != "submitit_slurm" or shutil.which("srun") is not None,
-        "hydra/launcher=submitit_slurm needs a Slurm cluster, and srun is not on the PATH here: "
-        "run the sweep on a Slurm login node, or here with hydra/launcher=submitit_local (or "
-        "joblib)",
-    )
-
-
 def run_entry_point(
     doc: str, argv: Sequence[str] | None, body: Callable[[list[str]], None]
 ) -> None:
     """The opening of ``python -m rlpipe.<command>``: ``-h``/``--help`` prints ``doc``, else
-    ``body(args)`` runs with TorchRL's logger quiet; its user errors print one line, exit 2."""
+    ``body(args)`` runs; its user errors print one line, exit 2."""
     args = sys.argv[1:] if argv is None else list(argv)
     if {"-h", "--help"} & set(args):
         print(doc.strip())
         return
-    logging.getLogger("torchrl").setLevel(logging.WARNING)  # the console is the command's output
     try:
         body(args)
     except USER_ERRORS as err:
@@ -203,20 +153,3 @@ def fail(err: BaseException) -> NoReturn:
         sys.exit(err.exit_code)
     print(f"rlpipe: error: {format_error(err)}", file=sys.stderr)
     sys.exit(2)
-
-
-def run_cli(hydra_main: Callable[[], Any]) -> None:
-    """Call a ``@hydra.main`` function; user errors become one line on stderr and exit 2."""
-    os.environ.setdefault("HYDRA_FULL_ERROR", "1")  # let errors reach us instead of Hydra's print
-    try:
-        hydra_main()
-    except USER_ERRORS as err:
-        fail(err)
-    except OSError as err:  # e.g. Hydra cannot create the run directory
-        where = f" {err.filename}" if err.filename else ""
-        fail(
-            RlpipeError(
-                f"cannot write{where}: {err.strerror or err}; pick a writable directory "
-                "with hydra.run.dir=<dir> (hydra.sweep.dir=<dir> for -m)"
-            )
-        )

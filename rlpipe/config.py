@@ -1,4 +1,7 @@
-"""Structured config schemas.
+"""Configs as dataclasses: fields with value rules, :class:`AlgoConfig` (the base of every
+algorithm's config, :mod:`rlpipe.algos.configs`), and a run's :class:`Config` (env, algorithm,
+logger and the runner's keys), also as the plain containers ``config.yaml`` and checkpoints hold,
+with the fingerprint that ties a run dir to one run. Imports no torch.
 
 Every schema is a plain dataclass, so research code builds configs without Hydra
 (``DQNConfig(lr=3e-4)``). The command line registers them in Hydra's ConfigStore: a typo'd key
@@ -10,10 +13,18 @@ from __future__ import annotations
 
 import os
 from collections.abc import Iterable
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, fields, is_dataclass, replace
+from pathlib import Path
 from typing import Any, ClassVar
 
-from rlpipe.errors import RULES, check, check_choice
+import yaml
+from omegaconf import OmegaConf
+
+from rlpipe.errors import RULES, RlpipeError, check, check_choice
+from rlpipe.registry import ALGORITHMS, config_class
+
+# the run's length and cadence: top-level keys of Config that default to the algorithm's own
+RUN_KEYS = ("total_frames", "eval_every", "eval_episodes", "checkpoint_every")
 
 
 def checked(default: Any, rule: str | None = None, *, choices: Iterable[Any] = ()) -> Any:
@@ -25,6 +36,18 @@ def checked(default: Any, rule: str | None = None, *, choices: Iterable[Any] = (
     if isinstance(default, list):
         return field(default_factory=lambda: list(default), metadata=meta)
     return field(default=default, metadata=meta)
+
+
+def check_rules(cfg: object, prefix: str) -> None:
+    """Check every :func:`checked` field of the dataclass ``cfg``; errors name the key as
+    ``<prefix><field>``."""
+    for f in fields(cfg):
+        value = getattr(cfg, f.name)
+        if f.metadata.get("choices"):
+            check_choice(value, prefix + f.name, f.metadata["choices"])
+        elif f.metadata.get("rule"):
+            test, requirement = RULES[f.metadata["rule"]]
+            check(test(value), f"{prefix}{f.name} {requirement}, got {value}")
 
 
 def flatten(node: dict[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -39,16 +62,36 @@ def flatten(node: dict[str, Any], prefix: str = "") -> dict[str, Any]:
     return flat
 
 
-def check_rules(cfg: object, prefix: str) -> None:
-    """Check every :func:`checked` field of the dataclass ``cfg``; errors name the key as
-    ``<prefix><field>``."""
-    for f in fields(cfg):
-        value = getattr(cfg, f.name)
-        if f.metadata.get("choices"):
-            check_choice(value, prefix + f.name, f.metadata["choices"])
-        elif f.metadata.get("rule"):
-            test, requirement = RULES[f.metadata["rule"]]
-            check(test(value), f"{prefix}{f.name} {requirement}, got {value}")
+def check_run_keys(cfg: object, prefix: str) -> None:
+    """Value checks of the :data:`RUN_KEYS` (null allowed: at the top level it means "the
+    algorithm's"; for ``total_frames`` it means "the algorithm's own budget")."""
+    for key, low in zip(RUN_KEYS, (1, 0, 1, 0)):
+        value = getattr(cfg, key)
+        check(value is None or value >= low, f"{prefix}{key} must be >= {low}, got {value}")
+
+
+@dataclass
+class AlgoConfig:
+    """What every algorithm config holds besides its hyper-parameters: its registry ``name`` and
+    the run length and cadence it needs, used where :class:`~rlpipe.config.Config` leaves them
+    null."""
+
+    # keys that do not decide the results (budgets, where rollouts run): left out of the
+    # fingerprint that ties a run dir to one run (fingerprint below), like RUN_KEYS
+    not_fingerprinted: ClassVar[tuple[str, ...]] = ()
+
+    name: str = ""
+    total_frames: int | None = None  # None: the algorithm's own budget (epochs, iterations)
+    eval_every: int = 10_000  # frames between greedy evaluations (0: only at the end)
+    eval_episodes: int = 10
+    checkpoint_every: int = 25_000  # frames between checkpoints (0: only at the end)
+    # your network in place of the default: {_target_: my_pkg.MyNet, **kwargs}, built by Hydra's
+    # instantiate with in_features/out_features from the env (docs/api.md); {}: the default
+    network: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        check_run_keys(self, "algo.")
+        check_rules(self, "algo.")
 
 
 @dataclass
@@ -85,47 +128,6 @@ class LoggerConfig:
         check_rules(self, "logger.")
 
 
-# the run's length and cadence: top-level keys of Config that default to the algorithm's own
-RUN_KEYS = ("total_frames", "eval_every", "eval_episodes", "checkpoint_every")
-
-
-@dataclass
-class AlgoConfig:
-    """What every algorithm config holds besides its hyper-parameters: its registry ``name`` and
-    the run length and cadence it needs, used where :class:`Config` leaves them null."""
-
-    # keys that do not decide the results (budgets, where rollouts run): left out of the
-    # fingerprint that ties a run dir to one run (rlpipe.rundir.fingerprint), like RUN_KEYS
-    not_fingerprinted: ClassVar[tuple[str, ...]] = ()
-
-    name: str = ""
-    total_frames: int | None = None  # None: the algorithm's own budget (epochs, iterations)
-    eval_every: int = 10_000  # frames between greedy evaluations (0: only at the end)
-    eval_episodes: int = 10
-    checkpoint_every: int = 25_000  # frames between checkpoints (0: only at the end)
-    # your network in place of the default: {_target_: my_pkg.MyNet, **kwargs}, built by Hydra's
-    # instantiate with in_features/out_features from the env (docs/api.md); {}: the default
-    network: dict[str, Any] = field(default_factory=dict)
-
-    def __post_init__(self) -> None:
-        check_run_keys(self, "algo.")
-        check_rules(self, "algo.")
-
-
-def check_run_keys(cfg: Config | AlgoConfig, prefix: str) -> None:
-    """Value checks of the :data:`RUN_KEYS` (null allowed: at the top level it means "the
-    algorithm's"; for ``total_frames`` it means "the algorithm's own budget")."""
-    for key, low in zip(RUN_KEYS, (1, 0, 1, 0)):
-        value = getattr(cfg, key)
-        check(value is None or value >= low, f"{prefix}{key} must be >= {low}, got {value}")
-
-
-def _default_algo() -> AlgoConfig:
-    from rlpipe.algos.dqn import DQNConfig  # the algorithms import this module
-
-    return DQNConfig()
-
-
 @dataclass
 class Config:
     """A whole training run: environment, algorithm, logger and the runner's knobs.
@@ -135,7 +137,9 @@ class Config:
     """
 
     env: EnvConfig = field(default_factory=EnvConfig)
-    algo: Any = field(default_factory=_default_algo)  # an AlgoConfig (DQNConfig, ARSConfig, ...)
+    algo: Any = field(
+        default_factory=lambda: ALGORITHMS.config("dqn")()
+    )  # AlgoConfig  # an AlgoConfig (DQNConfig, ARSConfig, ...)
     logger: LoggerConfig = field(default_factory=LoggerConfig)
     seed: int = checked(0, "seed")
     device: str = "auto"  # auto: cuda when available, else cpu
@@ -175,3 +179,90 @@ class Config:
         run = replace(self, **own)
         # the algorithm sees the run's keys too (e.g. a schedule spanning total_frames)
         return replace(run, algo=replace(self.algo, **{key: getattr(run, key) for key in RUN_KEYS}))
+
+
+# top-level keys that do not decide a run's results: its length and cadences, logging,
+# progress, and where it runs (the algorithm's own are AlgoConfig.not_fingerprinted)
+NOT_FINGERPRINTED = (
+    *RUN_KEYS,
+    "keep_checkpoints",
+    "log_every",
+    "progress",
+    "video",
+    "threads",
+    "device",
+    "resume",
+    "logger",
+)
+
+
+def config_to_dict(cfg: Config) -> dict[str, Any]:
+    """``cfg`` as plain containers (what ``config.yaml`` and checkpoints store)."""
+    return OmegaConf.to_container(OmegaConf.structured(cfg))
+
+
+def config_from_yaml(data: bytes, path: Path, *, allow_code: bool = False) -> Config:
+    """The :class:`Config` a ``config.yaml`` (its bytes ``data``, read from ``path``) holds; one
+    line naming ``path`` if it is damaged. A config that names code to import (an ``env.id`` of the
+    form ``module:Id``, an ``algo.network`` ``_target_``) is refused unless ``allow_code``."""
+    try:
+        loaded = yaml.safe_load(data.decode())
+        if not (isinstance(loaded, dict) and isinstance(loaded.get("algo"), dict)):
+            raise ValueError("not a run config")
+        cfg = config_from_dict(loaded)
+    except (RlpipeError, yaml.YAMLError, TypeError, ValueError, KeyError, AttributeError) as err:
+        reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise RlpipeError(f"{path} is damaged ({reason}); it is not a config rlpipe wrote") from err
+    code = [f"env.id={cfg.env.id!r}"] if ":" in cfg.env.id else []
+    if cfg.algo.network.get("_target_"):
+        code.append(f"algo.network._target_={cfg.algo.network.get('_target_')!r}")
+    check(
+        allow_code or not code,
+        f"{path} names {code[0] if code else ''}, which would import its module: a run dir "
+        "is data, not code; pass allow_env_import=true if you trust this run dir",
+    )
+    return cfg
+
+
+def config_from_dict(data: dict[str, Any]) -> Config:
+    """Rebuild a :class:`Config` (value checks included) from :func:`config_to_dict` output;
+    keys a newer or older version does not know are dropped, missing ones take the default."""
+    data = dict(data)
+    algo = dict(data.pop("algo"))
+    check(algo.get("name") in ALGORITHMS, f"unknown algorithm {algo.get('name')!r} in config")
+    return Config(
+        env=_build(EnvConfig, data.pop("env")),
+        algo=_build(ALGORITHMS.config(algo["name"]), algo),
+        logger=_build(LoggerConfig, data.pop("logger")),
+        **{k: v for k, v in data.items() if k in _names(Config)},
+    )
+
+
+def _names(cls: type) -> set[str]:
+    return {f.name for f in fields(cls)}
+
+
+def _build(cls: type, data: dict[str, Any]) -> Any:
+    assert is_dataclass(cls)
+    return cls(**{k: v for k, v in data.items() if k in _names(cls)})
+
+
+def fingerprint(cfg: Config | dict[str, Any]) -> dict[str, Any]:
+    """What decides a run's results, flat (``{"algo.lr": 0.0001, "seed": 0, ...}``): algorithm,
+    env, architecture, hyper-parameters and seed; not budgets, cadences, logging or progress."""
+    data = config_to_dict(cfg) if isinstance(cfg, Config) else dict(cfg)
+    algo = dict(data.get("algo") or {})
+    schema = config_class(algo.get("name"))
+    for key in (*RUN_KEYS, *(schema.not_fingerprinted if schema else ())):
+        algo.pop(key, None)
+    data = {k: v for k, v in data.items() if k not in NOT_FINGERPRINTED}
+    return flatten({**data, "algo": algo})
+
+
+def fingerprint_diff(ours: dict[str, Any], theirs: dict[str, Any]) -> str:
+    """The keys in which two fingerprints differ, as ``key (ours here, theirs there)``."""
+    keys = [k for k in {**theirs, **ours} if ours.get(k) != theirs.get(k)]
+    keys.sort(key=lambda k: k not in ("algo.name", "env.id"))  # what tells runs apart first
+    shown = [f"{k} ({ours.get(k)!r} here, {theirs.get(k)!r} there)" for k in keys[:3]]
+    more = f" and {len(keys) - 3} more" if len(keys) > 3 else ""
+    return ", ".join(shown) + more

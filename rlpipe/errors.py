@@ -14,6 +14,10 @@ class RlpipeError(ValueError):
     """
 
 
+class RunDirConflict(RlpipeError):
+    """The run dir belongs to another run, or another process is writing it."""
+
+
 def check(condition: bool, message: str) -> None:
     """Raise :class:`RlpipeError` with ``message`` unless ``condition`` holds."""
     if not condition:

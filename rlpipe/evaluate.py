@@ -39,7 +39,9 @@ from rlpipe.errors import check
 from rlpipe.files import check_writable
 from rlpipe.heuristic import heuristic_policy, naive_policy, random_policy
 from rlpipe.loggers import require_extra
-from rlpipe.rundir import latest_run, load_config, load_run
+from rlpipe.pipeline import load_run
+from rlpipe.rundir import RunDir
+from rlpipe.runs import latest_run
 from rlpipe.runtime import resolve_device, seed_everything
 from rlpipe.video import check_display, frame_rate, make_render_env, record_episode, write_mp4
 
@@ -107,7 +109,7 @@ def _policy(cfg: EvaluateConfig, stack: ExitStack) -> tuple[TensorDictModuleBase
         stack.callback(loaded.algo.close)
         return loaded.algo.policy, loaded.cfg.env, f"trained-{loaded.checkpoint.stem}"
     env_cfg = (
-        load_config(cfg.run_dir, allow_env_import=cfg.allow_env_import).env
+        RunDir(cfg.run_dir).read_config(allow_code=cfg.allow_env_import).env
         if cfg.run_dir
         else cfg.env
     )
@@ -120,7 +122,7 @@ def _out_path(cfg: EvaluateConfig, env_cfg: EnvConfig, name: str) -> Path:
     if cfg.out:
         return Path(cfg.out)
     if cfg.run_dir:
-        return Path(cfg.run_dir) / "evaluation" / f"{name}.json"
+        return Path(cfg.run_dir) / RunDir.EVALUATION / f"{name}.json"
     return BASELINES_DIR / f"{re.sub(r'[^A-Za-z0-9._-]+', '_', env_cfg.id)}-{name}.json"
 
 

@@ -12,12 +12,12 @@ from pathlib import Path
 import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
-from omegaconf import OmegaConf
 
 from rlpipe.errors import check
-from rlpipe.metrics import EVAL_METRIC, Group, metric_path, read_metric
+from rlpipe.metrics import EVAL_METRIC
+from rlpipe.rundir import RunDir
+from rlpipe.runs import Group
 
-CURVE_FILE = "curve.png"
 WINDOW = 100  # episodes in the training-return moving average (as the DQN notebook plotted)
 
 
@@ -32,7 +32,7 @@ def moving_average(values: np.ndarray, window: int) -> np.ndarray:
 def _title(run_dir: Path) -> str:
     """``<algo> on <env id>: <run dir>``, the dir relative to the working directory when under it
     (a figure should not show where a home directory is)."""
-    env_id, algo = run_identity(run_dir)
+    env_id, algo = RunDir(run_dir).identity()
     where = (
         Path(os.path.relpath(run_dir.resolve()))
         if run_dir.resolve().is_relative_to(Path.cwd())
@@ -44,27 +44,28 @@ def _title(run_dir: Path) -> str:
 def plot_run(run_dir: str | Path, path: str | Path | None = None) -> Path:
     """Draw ``run_dir``'s greedy eval return and training episode return into ``curve.png``."""
     run_dir = Path(run_dir)
-    frames, mean = read_metric(run_dir, EVAL_METRIC)
+    run = RunDir(run_dir)
+    frames, mean = run.metric(EVAL_METRIC)
     check(
         len(frames) > 0,
-        f"no metrics in {run_dir}: {metric_path(run_dir, EVAL_METRIC)} is missing or empty "
+        f"no metrics in {run_dir}: {run.metric_path(EVAL_METRIC)} is missing or empty "
         "(runs with logger=none write none)",
     )
     fig = Figure(figsize=(12, 4.5), dpi=100, layout="constrained")
     left, right = fig.subplots(1, 2)
-    _, std = read_metric(run_dir, "eval/return_std")
+    _, std = run.metric("eval/return_std")
     left.plot(frames, mean, marker="o", color="C0", label="greedy eval mean")
     if len(std) == len(mean):
         left.fill_between(frames, mean - std, mean + std, color="C0", alpha=0.2, label="± std")
     _label(left, "greedy evaluation return")
-    ep_frames, returns = read_metric(run_dir, "train/episode_return")
+    ep_frames, returns = run.metric("train/episode_return")
     if len(returns):
         right.plot(ep_frames, returns, color="C1", alpha=0.35, lw=0.8, label="episode return")
         average = moving_average(returns, WINDOW)
         right.plot(ep_frames, average, color="C3", lw=2, label=f"{WINDOW}-episode moving average")
     _label(right, "training episode return")
     fig.suptitle(_title(run_dir), fontsize=10)
-    path = Path(path) if path else run_dir / CURVE_FILE
+    path = Path(path) if path else run_dir / RunDir.CURVE
     fig.savefig(path)
     return path
 
@@ -104,7 +105,7 @@ def bootstrap_band(
 
 def aligned(runs: Sequence[Path], metric: str) -> tuple[np.ndarray, np.ndarray]:
     """``(frames, values[run, frame])`` on the frames of the shortest run (interpolated)."""
-    curves = [read_metric(run, metric) for run in runs]
+    curves = [RunDir(run).metric(metric) for run in runs]
     grid = min((frames for frames, _ in curves), key=lambda f: f[-1])
     return grid, np.stack([np.interp(grid, frames, values) for frames, values in curves])
 
@@ -113,15 +114,6 @@ def aligned(runs: Sequence[Path], metric: str) -> tuple[np.ndarray, np.ndarray]:
 METRIC_NAMES = {EVAL_METRIC: "greedy evaluation return", "train/episode_return": "training return"}
 MARKERS_UP_TO = 40  # points per line: markers on each point up to this many
 LEGEND_WIDTH, LEGEND_LINES = 60, 3  # a legend entry's characters per line, lines at most
-
-
-def run_identity(run: Path) -> tuple[str, str]:
-    """``(env id, algorithm)`` of a run dir, from its ``config.yaml`` ("?" where unknown)."""
-    config = run / "config.yaml"
-    cfg = OmegaConf.load(config) if config.is_file() else OmegaConf.create()
-    return str(OmegaConf.select(cfg, "env.id", default="?")), str(
-        OmegaConf.select(cfg, "algo.name", default="?")
-    )
 
 
 def plot_groups(
@@ -154,7 +146,7 @@ def groups_figure(
     check(aggregate in AGGREGATES, f"agg must be one of {', '.join(AGGREGATES)}; got {aggregate!r}")
     panels: dict[str, list[tuple[int, Group, str]]] = {}
     for i, group in enumerate(groups):
-        env_id, algo = run_identity(group.runs[0])
+        env_id, algo = RunDir(group.runs[0]).identity()
         panels.setdefault(env_id, []).append((i, group, algo))
     columns = min(len(panels), 3)
     rows = -(-len(panels) // columns)

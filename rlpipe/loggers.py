@@ -27,11 +27,10 @@ from torchrl.record.loggers import (
     WandbLogger,
 )
 
-from rlpipe.config import Config, LoggerConfig, flatten
+from rlpipe.config import NOT_FINGERPRINTED, Config, LoggerConfig, flatten
 from rlpipe.errors import RlpipeError
-from rlpipe.rundir import NOT_FINGERPRINTED  # what does not decide a run's results
+from rlpipe.rundir import RunDir
 
-METRICS_DIR = "metrics"  # <run dir>/metrics/scalars/<name>.csv (TorchRL CSVLogger's layout)
 MAX_OPEN_FILES = 64  # CsvLogger keeps at most this many metric files open (runs log < 30)
 
 # pip extra -> modules it provides (checked before anything is built)
@@ -67,7 +66,7 @@ class CsvLogger(Logger):
     (:func:`takes_video` is false); hyper-parameters are in the run dir's ``config.yaml``.
     """
 
-    def __init__(self, exp_name: str = METRICS_DIR, log_dir: str | Path = ".") -> None:
+    def __init__(self, exp_name: str = RunDir.METRICS, log_dir: str | Path = ".") -> None:
         self._files: dict[str, FileIO] = {}  # metric name -> open file, least recent first
         self._counts: dict[str, int] = {}  # rows logged without a step, per metric
         super().__init__(exp_name=exp_name, log_dir=str(log_dir))
@@ -233,7 +232,7 @@ def make_logger(
     if cfg.backend != "csv":
         require_extra(cfg.backend, f"logger={cfg.backend}")
     run_dir = Path(run_dir).absolute()
-    csv = CsvLogger(exp_name=METRICS_DIR, log_dir=run_dir)
+    csv = CsvLogger(exp_name=RunDir.METRICS, log_dir=run_dir)
     if cfg.backend == "csv":
         return csv
     card = card or RunCard(run_dir.name, {}, {})

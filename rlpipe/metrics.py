@@ -1,35 +1,24 @@
-"""A run's logged metrics, read back: one metric's CSV, the runs below a directory, and runs
-grouped by the overrides that made them (seeds of one setting together); and cutting a run's
-CSVs back to its checkpoint when it resumes (:func:`truncate_metrics`).
+"""Metric CSV files: read back, and cut back to a checkpoint when a run resumes
+(:func:`truncate_metrics`). Where a run keeps them: :class:`rlpipe.rundir.RunDir`.
 
-Metrics are :class:`rlpipe.loggers.CsvLogger` files (TorchRL ``CSVLogger``'s format),
-``<run dir>/metrics/scalars/<name>.csv``, one ``frames,value`` line per logged value and no
-header. A crash while writing can leave a damaged tail (a line without its newline, NUL bytes
-after a power cut): the good part ends at the first line that does not parse. Readers skip the
-tail; :func:`truncate_metrics` cuts it.
+Metrics are :class:`rlpipe.loggers.CsvLogger` files (TorchRL ``CSVLogger``'s format), one
+``frames,value`` line per logged value and no header. A crash while writing can leave a damaged
+tail (a line without its newline, NUL bytes after a power cut): the good part ends at the first
+line that does not parse. Readers skip the tail; :func:`truncate_metrics` cuts it.
 """
 
 from __future__ import annotations
 
 import sys
-from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import numpy as np
-from omegaconf import OmegaConf
-
-from rlpipe.config import flatten
-from rlpipe.errors import check
 from rlpipe.files import TEMP_SUFFIX, write_atomic
-from rlpipe.loggers import METRICS_DIR
+
+if TYPE_CHECKING:
+    import numpy as np
 
 EVAL_METRIC = "eval/return_mean"
-
-
-def metric_path(run_dir: str | Path, name: str) -> Path:
-    """Where ``name`` (e.g. ``eval/return_mean``) lives in ``run_dir``."""
-    return Path(run_dir) / METRICS_DIR / "scalars" / f"{name}.csv"
 
 
 def parse_rows(data: bytes) -> tuple[list[tuple[float, float]], int]:
@@ -63,13 +52,15 @@ def _parse_line(line: bytes) -> tuple[float, float] | None:
         return None
 
 
-def read_metric(run_dir: str | Path, name: str) -> tuple[np.ndarray, np.ndarray]:
-    """``(frames, values)`` of one metric; empty arrays when the run did not log it.
+def read_metric(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """``(frames, values)`` of one metric's CSV file; empty arrays when there is none.
 
     A damaged tail (see :func:`parse_rows`) is left out; so is a line a running run is
     writing right now.
     """
-    path = metric_path(run_dir, name)
+    import numpy as np  # here: the command line reads no metric and loads no numpy
+
+    path = Path(path)
     if not path.is_file():
         return np.empty(0), np.empty(0)
     rows, _ = parse_rows(path.read_bytes())
@@ -79,8 +70,8 @@ def read_metric(run_dir: str | Path, name: str) -> tuple[np.ndarray, np.ndarray]
     return table[:, 0], table[:, 1]
 
 
-def truncate_metrics(run_dir: str | Path, frames: int) -> None:
-    """Cut every metric CSV of ``run_dir`` back to the rows logged at ``frames`` or before.
+def truncate_metrics(scalars: str | Path, frames: int) -> None:
+    """Cut every metric CSV below ``scalars`` back to the rows logged at ``frames`` or before.
 
     Run when a run resumes from its checkpoint at ``frames``: rows logged after it belong to
     the lost part of the run and are logged again, so each row is in the files once. A
@@ -88,7 +79,7 @@ def truncate_metrics(run_dir: str | Path, frames: int) -> None:
     atomically (a trimmed copy, fsynced, renamed over it, the directory fsynced): a crash at
     any moment leaves each file whole, old or new. Unchanged files are not touched.
     """
-    scalars = Path(run_dir) / METRICS_DIR / "scalars"
+    scalars = Path(scalars)
     if not scalars.is_dir():
         return
     for stale in scalars.rglob(f".*.csv{TEMP_SUFFIX}"):  # a copy a killed truncation left
@@ -111,70 +102,3 @@ def _truncate_file(path: Path, frames: int) -> None:
     kept = b"".join(line + b"\n" for line, (step, _) in zip(lines, rows) if step <= frames)
     if kept != data:
         write_atomic(path, kept, fault="truncate")
-
-
-@dataclass
-class Group:
-    """Runs that differ only by seed (or a resume), and the overrides that set them apart."""
-
-    label: str
-    runs: list[Path]
-
-
-def find_runs(dirs: Sequence[str | Path], metric: str = EVAL_METRIC) -> list[Path]:
-    """Run dirs in ``dirs`` or below them (a multirun sweep dir) that logged ``metric``."""
-    runs: list[Path] = []
-    for directory in map(Path, dirs):
-        check(directory.is_dir(), f"{directory} is not a directory")
-        relative = metric_path("", metric)
-        found = sorted(
-            p.parents[len(relative.parts) - 1]
-            for p in directory.rglob(str(relative))
-            if parse_rows(p.read_bytes())[0]
-        )
-        check(
-            bool(found),
-            f"no metrics under {directory}: no run dir with {METRICS_DIR}/scalars/{metric}.csv "
-            "(runs with logger=none write none)",
-        )
-        runs += found
-    return list(dict.fromkeys(runs))
-
-
-def run_overrides(run_dir: Path) -> list[str]:
-    """``key=value`` overrides that made ``run_dir``: Hydra's record, else its whole config."""
-    hydra_record = run_dir / ".hydra" / "overrides.yaml"
-    if hydra_record.is_file():
-        return list(OmegaConf.load(hydra_record))
-    config = run_dir / "config.yaml"
-    if not config.is_file():
-        return []
-    flat = flatten(OmegaConf.to_container(OmegaConf.load(config)))
-    return [f"{key}={value}" for key, value in flat.items()]
-
-
-def _key(override: str) -> str:
-    return override.split("=")[0].lstrip("+~")
-
-
-# overrides that never tell experiments apart: seeds are what a group averages over, and a resumed
-# run is the run it continues
-NOT_GROUPED = ("seed", "resume")
-
-
-def group_runs(runs: Sequence[Path]) -> list[Group]:
-    """Group runs that differ only by ``seed`` (or ``resume``), each labelled by what sets it apart.
-
-    Runs whose overrides agree but for ``seed`` and ``resume`` form one group; a group's label
-    is its overrides that not every run shares (a single group: its overrides, or "defaults").
-    """
-    keyed: dict[frozenset[str], list[Path]] = {}
-    for run in runs:
-        overrides = frozenset(o for o in run_overrides(run) if _key(o) not in NOT_GROUPED)
-        keyed.setdefault(overrides, []).append(run)
-    common = frozenset.intersection(*keyed) if keyed else frozenset()
-    groups = []
-    for overrides, members in keyed.items():
-        label = " ".join(sorted(overrides - common if len(keyed) > 1 else overrides))
-        groups.append(Group(label or "defaults", members))
-    return groups

@@ -1,5 +1,4 @@
-"""What a run ends with: its result, or the errors that stop it (interrupted, diverged), and the
-budget check every run passes first."""
+"""What a run ends with: its result, or the errors that stop it (interrupted, diverged)."""
 
 from __future__ import annotations
 
@@ -7,8 +6,7 @@ import signal
 from dataclasses import dataclass
 from pathlib import Path
 
-from rlpipe.algos.base import Algorithm
-from rlpipe.errors import RlpipeError, check
+from rlpipe.errors import RlpipeError
 
 
 @dataclass
@@ -43,12 +41,3 @@ class Interrupted(RlpipeError):
 
 class Diverged(RlpipeError):
     """A loss or a parameter became NaN or infinite; no checkpoint is written after it."""
-
-
-def check_budget(algo: Algorithm, total_frames: int | None) -> None:
-    """A run needs ``total_frames`` unless the algorithm has a budget of its own."""
-    check(
-        total_frames is not None or algo.budget is not None,
-        f"total_frames=null, but {type(algo).__name__} has no budget of its own "
-        "(epochs, iterations): set total_frames=N",
-    )

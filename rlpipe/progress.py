@@ -56,6 +56,12 @@ class ProgressBar:
     def close(self) -> None:
         self.bar.close()
 
+    def __enter__(self) -> ProgressBar:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
 
 def postfix(last_return: float, last_eval: EvalResult | None) -> dict[str, str]:
     """The bar's postfix fields."""

@@ -1,348 +1,388 @@
-"""What a run directory holds and how to load it back: ``config.yaml`` and ``checkpoints/``.
+"""One run's directory: its layout and every read and write of it, in :class:`RunDir`.
 
-Every run writes ``config.yaml`` (the whole :class:`Config`, the algorithm's ``name``
-included) before training; ``evaluate``, ``resume`` and research code rebuild the run from it.
-A run dir belongs to one run: its :func:`fingerprint` (the keys that decide the results) must
-match to resume in it, and :func:`lock_run_dir` keeps a second process out while one writes.
+A run dir holds one run: ``config.yaml`` (the whole resolved config), ``checkpoints/``
+(``ckpt_<frames>.pt`` resume points, ``best_<frames>.pt`` the best evaluation's),
+``metrics/scalars/`` (one CSV per metric), ``summary.json``, Hydra's record ``.hydra/`` and, while
+a process trains in it, ``.lock``. A run dir is data: nothing in it is imported unless the caller
+says it trusts the dir. Imports no torch and nothing of the algorithms.
 """
 
 from __future__ import annotations
 
 import fcntl
+import json
 import os
+import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, fields, is_dataclass, replace
-from functools import partial
+from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import torch
-import yaml
-from omegaconf import OmegaConf
-from torch import nn
+from omegaconf import DictConfig, OmegaConf
 
-from rlpipe.algos import ALGORITHMS, Algorithm, make_algorithm
-from rlpipe.checkpoint import fitting, list_best, list_checkpoints, load_checkpoint, load_latest
-from rlpipe.config import RUN_KEYS, Config, EnvConfig, LoggerConfig, flatten
-from rlpipe.envs import make_env
-from rlpipe.errors import RlpipeError, check
-from rlpipe.files import write_atomic
-from rlpipe.models import object_record
+from rlpipe.checkpoint import CorruptCheckpoint, fitting, load_checkpoint, loads, save_checkpoint
+from rlpipe.config import Config, config_from_yaml, config_to_dict, fingerprint, fingerprint_diff
+from rlpipe.errors import RlpipeError, RunDirConflict, check
+from rlpipe.files import TEMP_SUFFIX, write_atomic
+from rlpipe.metrics import read_metric, truncate_metrics
+from rlpipe.outcomes import RunResult
 
-CONFIG_FILE = "config.yaml"
-LOCK_FILE = ".lock"
-# top-level keys that do not decide a run's results: its length and cadences, logging,
-# progress, and where it runs (the algorithm's own are AlgoConfig.not_fingerprinted)
-NOT_FINGERPRINTED = (
-    *RUN_KEYS,
-    "keep_checkpoints",
-    "log_every",
-    "progress",
-    "video",
-    "threads",
-    "device",
-    "resume",
-    "logger",
-)
-
-
-class RunDirConflict(RlpipeError):
-    """The run dir belongs to another run, or another process is writing it."""
-
-
-def config_to_dict(cfg: Config) -> dict[str, Any]:
-    """``cfg`` as plain containers (what ``config.yaml`` and checkpoints store)."""
-    return OmegaConf.to_container(OmegaConf.structured(cfg))
-
-
-def config_from_dict(data: dict[str, Any]) -> Config:
-    """Rebuild a :class:`Config` (value checks included) from :func:`config_to_dict` output."""
-    data = dict(data)
-    algo = dict(data.pop("algo"))
-    check(algo.get("name") in ALGORITHMS, f"unknown algorithm {algo.get('name')!r} in config")
-    return Config(
-        env=_build(EnvConfig, data.pop("env")),
-        algo=_build(ALGORITHMS[algo["name"]][0], algo),
-        logger=_build(LoggerConfig, data.pop("logger")),
-        **{k: v for k, v in data.items() if k in _names(Config)},
-    )
-
-
-def _names(cls: type) -> set[str]:
-    return {f.name for f in fields(cls)}
-
-
-def _build(cls: type, data: dict[str, Any]) -> Any:
-    # keys a newer/older version does not know are dropped; missing ones take the default
-    assert is_dataclass(cls)
-    return cls(**{k: v for k, v in data.items() if k in _names(cls)})
-
-
-def describe_run(algo: Algorithm, **run: Any) -> Config | None:
-    """The :class:`Config` of a run a hand-built :class:`~rlpipe.runner.Runner` drives, or None.
-
-    Known when ``algo`` is an rlpipe algorithm (its ``cfg`` a registered algorithm config)
-    built on an env factory made as ``functools.partial(make_env, EnvConfig(...), seed=s)``
-    (``seed`` left out: torch's initial seed, what :func:`~rlpipe.seed_everything` set). ``run``:
-    the runner's :data:`~rlpipe.config.RUN_KEYS`, ``keep_checkpoints`` and ``progress``.
-    """
-    cfg, factory = getattr(algo, "cfg", None), getattr(algo, "env_factory", None)
-    network = getattr(algo, "_network", None)  # given as an object: recorded by its class
-    known = cfg is not None and ALGORITHMS.get(getattr(cfg, "name", None), (None,))[0] is type(cfg)
-    by_make_env = isinstance(factory, partial) and factory.func is make_env
-    if not (known and by_make_env and factory.args and isinstance(factory.args[0], EnvConfig)):
-        return None
-    env, options = factory.args[0], factory.keywords
-    if options.get("num_envs"):
-        env = replace(env, num_envs=options["num_envs"])
-    seed = options.get("seed")
-    return Config(
-        env=env,
-        algo=replace(
-            cfg,
-            **{key: run[key] for key in RUN_KEYS},
-            **({} if network is None else {"network": object_record(network)}),
-        ),
-        seed=torch.initial_seed() % 2**32 if seed is None else seed,
-        device=str(getattr(algo, "device", "auto")),
-        **run,
-    )
-
-
-def fingerprint(cfg: Config | dict[str, Any]) -> dict[str, Any]:
-    """What decides a run's results, flat (``{"algo.lr": 0.0001, "seed": 0, ...}``): algorithm,
-    env, architecture, hyper-parameters and seed; not budgets, cadences, logging or progress."""
-    data = config_to_dict(cfg) if isinstance(cfg, Config) else dict(cfg)
-    algo = dict(data.get("algo") or {})
-    schema = ALGORITHMS[algo["name"]][0] if algo.get("name") in ALGORITHMS else None
-    for key in (*RUN_KEYS, *(schema.not_fingerprinted if schema else ())):
-        algo.pop(key, None)
-    data = {k: v for k, v in data.items() if k not in NOT_FINGERPRINTED}
-    return flatten({**data, "algo": algo})
-
-
-def fingerprint_diff(ours: dict[str, Any], theirs: dict[str, Any]) -> str:
-    """The keys in which two fingerprints differ, as ``key (ours here, theirs there)``."""
-    keys = [k for k in {**theirs, **ours} if ours.get(k) != theirs.get(k)]
-    keys.sort(key=lambda k: k not in ("algo.name", "env.id"))  # what tells runs apart first
-    shown = [f"{k} ({ours.get(k)!r} here, {theirs.get(k)!r} there)" for k in keys[:3]]
-    more = f" and {len(keys) - 3} more" if len(keys) > 3 else ""
-    return ", ".join(shown) + more
-
-
-def check_same_run(cfg: Config, run_dir: str | Path) -> Config:
-    """The config stored in ``run_dir``, after checking ``cfg`` is the same run (same
-    fingerprint); otherwise :class:`RunDirConflict` names the differing keys."""
-    stored = load_config(run_dir, allow_env_import=True)  # compared, not built
-    ours, theirs = fingerprint(cfg), fingerprint(stored)
-    if ours != theirs:
-        raise RunDirConflict(
-            f"{run_dir} belongs to another run: it differs in {fingerprint_diff(ours, theirs)}; "
-            f"resume it with the overrides it was started with ({original_command(run_dir)} "
-            f"resume={run_dir}) "
-            "or pick another run dir (hydra.run.dir=<dir>)"
-        )
-    return stored
-
-
-@contextmanager
-def lock_run_dir(run_dir: str | Path) -> Iterator[None]:
-    """Hold ``run_dir``'s lock file while the block runs: a second process trying to lock it
-    gets :class:`RunDirConflict` naming the holder's PID (the OS drops the lock with the
-    process, however it dies)."""
-    path = Path(run_dir) / LOCK_FILE
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
-    except OSError as err:
-        raise unwritable(run_dir, err) from err
-    try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
-            raise RunDirConflict(
-                f"{run_dir} is in use by another rlpipe process (pid {holder}); wait for it to "
-                "end or pick another run dir (hydra.run.dir=<dir>)"
-            ) from None
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
-        yield
-    finally:
-        os.close(fd)  # closing the descriptor releases the lock
-
-
-def unwritable(run_dir: str | Path, err: OSError) -> RlpipeError:
-    """The one-line error for a run dir that cannot be written."""
-    return RlpipeError(
-        f"cannot write the run directory {run_dir}: {err.strerror or err}; "
-        "pick a writable one with hydra.run.dir=<dir>"
-    )
-
-
-def save_config(cfg: Config, run_dir: str | Path) -> Path:
-    """Write ``run_dir/config.yaml`` unless it already holds ``cfg`` (atomically: a reader sees
-    the old file or the new); an :class:`RlpipeError` if the dir cannot be written."""
-    path = Path(run_dir) / CONFIG_FILE
-    data = OmegaConf.to_yaml(config_to_dict(cfg)).encode()
-    try:
-        if path.is_file() and path.read_bytes() == data:
-            return path
-        path.parent.mkdir(parents=True, exist_ok=True)
-        write_atomic(path, data)
-    except OSError as err:
-        raise unwritable(run_dir, err) from err
-    return path
-
-
-def load_config(run_dir: str | Path, *, allow_env_import: bool = False) -> Config:
-    """The :class:`Config` a run was started with (``run_dir/config.yaml``).
-
-    A run dir is data: an ``env.id`` of the form ``module:Id`` (which makes gymnasium import
-    ``module``) or an ``algo.network`` (whose ``_target_`` is imported and called) is refused
-    unless ``allow_env_import`` (only for run dirs you trust).
-    """
-    path = Path(run_dir) / CONFIG_FILE
-    check(Path(run_dir).is_dir(), f"run directory {run_dir} does not exist")
-    check(
-        path.is_file(),
-        f"{run_dir} is not an rlpipe run directory (no {CONFIG_FILE}); "
-        "pass a directory a training run wrote, e.g. outputs/<date>/<time>",
-    )
-    try:
-        data = yaml.safe_load(path.read_text())
-        if not (isinstance(data, dict) and isinstance(data.get("algo"), dict)):
-            raise ValueError("not a run config")
-        cfg = config_from_dict(data)
-    except (RlpipeError, yaml.YAMLError, TypeError, ValueError, KeyError, AttributeError) as err:
-        reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        raise RlpipeError(f"{path} is damaged ({reason}); it is not a config rlpipe wrote") from err
-    code = [f"env.id={cfg.env.id!r}"] if ":" in cfg.env.id else []
-    if cfg.algo.network.get("_target_"):
-        code.append(f"algo.network._target_={cfg.algo.network.get('_target_')!r}")
-    check(
-        allow_env_import or not code,
-        f"{path} names {code[0] if code else ''}, which would import its module: a run dir "
-        "is data, not code; pass allow_env_import=true if you trust this run dir",
-    )
-    return cfg
-
-
-def latest_run(root: str | Path = "outputs") -> Path:
-    """The run dir under ``root`` (Hydra's ``outputs/``, sweeps included) that was written last:
-    by the newest of its ``config.yaml``, ``summary.json`` and checkpoints."""
-
-    def written(run: Path) -> float:
-        files = [run / CONFIG_FILE, run / "summary.json", *run.glob("checkpoints/*.pt")]
-        return max(f.stat().st_mtime for f in files if f.is_file())
-
-    runs = [path.parent for path in Path(root).glob(f"**/{CONFIG_FILE}")]
-    check(
-        bool(runs),
-        f"run_dir=latest found no run under {root}/ (no {CONFIG_FILE}); train first "
-        "(python -m rlpipe) in this directory, or pass run_dir=<dir>",
-    )
-    return max(runs, key=written)
+if TYPE_CHECKING:
+    import numpy as np
 
 
 @dataclass
-class LoadedRun:
-    """A run rebuilt from its directory: config, algorithm (weights loaded), checkpoint used."""
+class Checkpoint:
+    """A checkpoint read back: its file and the state it holds (``state["frames"]`` frames in)."""
 
-    cfg: Config
-    algo: Algorithm
-    checkpoint: Path
+    path: Path
+    state: dict[str, Any]
 
+    @property
+    def frames(self) -> int:
+        return int(self.state["frames"])
 
-def read_checkpoint(run_dir: str | Path, name: str | None = None) -> tuple[Path, dict[str, Any]]:
-    """``run_dir/checkpoints/<name>`` and its state, the best-eval one (``name`` ``"best"``), or
-    the newest one that loads (``name`` None)."""
-    directory = Path(run_dir) / "checkpoints"
-    if name == "best":
-        best = list_best(directory)
-        check(
-            bool(best),
-            f"{run_dir} has no best checkpoint (checkpoints/best_*.pt, kept at each evaluation "
-            "better than the ones before); evaluate the newest with checkpoint=null",
-        )
-        return best[-1], load_checkpoint(best[-1])
-    if name is None:
-        check(
-            bool(list_checkpoints(directory)),
-            f"{run_dir} has no checkpoint yet (nothing in {directory}); train first",
-        )
-        return load_latest(directory)
-    path = directory / name if not Path(name).is_absolute() else Path(name)
-    check(path.is_file(), f"checkpoint {path} does not exist")
-    return path, load_checkpoint(path)
+    @contextmanager
+    def applying(self) -> Iterator[None]:
+        """Any error while applying :attr:`state` becomes one line naming the file."""
+        with fitting(self.path):
+            yield
 
 
-def load_run(
-    run_dir: str | Path,
-    checkpoint: str | None = None,
-    *,
-    device: str | torch.device = "cpu",
-    num_envs: int = 1,
-    allow_env_import: bool = False,
-    network: nn.Module | None = None,
-) -> LoadedRun:
-    """Rebuild a run from its ``config.yaml`` and a checkpoint, as a :class:`LoadedRun`.
+class RunDir:
+    """The directory ``path`` of one run, and the only code that reads or writes it.
 
-    The algorithm is built on ``num_envs`` fresh env copies and loads its checkpoint
-    (``checkpoint``: a file name in ``run_dir/checkpoints``; None: the newest that loads).
-
-    ``allow_env_import``: see :func:`load_config`. ``network``: the module a run was trained
-    with in place of the default (a Python object, which ``config.yaml`` cannot hold; a
-    ``algo.network`` spec is rebuilt from the config). The caller owns ``LoadedRun.algo`` and
-    must ``close()`` it.
+    Training opens it in two steps: :meth:`open` checks that a config is this dir's run and
+    reads the checkpoint to resume from (nothing is written), and :meth:`session`, once the run
+    is built, takes the lock and begins the run (``config.yaml``, metrics cut back to the
+    checkpoint, old checkpoints pruned, a best checkpoint from the part being redone removed);
+    :meth:`save_checkpoint`, :meth:`save_best` and :meth:`write_summary` need the session. The
+    read side (:meth:`read_config`, :meth:`read_checkpoint`, :meth:`metric`, :meth:`read_summary`,
+    :meth:`overrides`) serves ``load_run``, ``rlpipe.evaluate``, ``rlpipe.plot`` and sweeps.
     """
-    cfg = load_config(run_dir, allow_env_import=allow_env_import)
-    path, state = read_checkpoint(run_dir, checkpoint)
-    factory = partial(make_env, cfg.env, num_envs=num_envs, seed=cfg.seed)
-    algo = make_algorithm(factory, cfg.algo, device=device, network=network)
-    try:
-        with fitting(path):
-            algo.load_state_dict(state["algo"])
-    except BaseException:
-        algo.close()
-        raise
-    return LoadedRun(cfg, algo, path)
 
+    CONFIG = "config.yaml"
+    LOCK = ".lock"
+    CHECKPOINTS = "checkpoints"
+    METRICS = "metrics"  # metrics/scalars/<name>.csv (TorchRL CSVLogger's layout)
+    SUMMARY = "summary.json"
+    HYDRA = ".hydra"
+    VIDEOS = "videos"  # videos/eval_<frames>.mp4 (video=true)
+    EVALUATION = "evaluation"  # evaluation/<policy>.json (python -m rlpipe.evaluate)
+    CURVE = "curve.png"
 
-def hydra_overrides(run_dir: str | Path) -> list[str]:
-    """The command-line overrides the run was started with (Hydra's record; none from Python)."""
-    path = Path(run_dir) / ".hydra" / "overrides.yaml"
-    return [str(o) for o in OmegaConf.load(path)] if path.is_file() else []
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self._lock: int | None = None  # the lock file's descriptor while a session holds it
+        self._opened: tuple | None = None  # the checkpoints open() saw (None: not opened)
+        self._keep = 3
 
+    def __fspath__(self) -> str:
+        return str(self.path)
 
-def original_command(run_dir: str | Path) -> str:
-    """``python -m rlpipe <the overrides the run was started with>`` (from Hydra's record)."""
-    return " ".join(["python -m rlpipe", *hydra_overrides(run_dir)])
+    def __repr__(self) -> str:
+        return f"RunDir({str(self.path)!r})"
 
+    # -- layout
+    @property
+    def checkpoints_dir(self) -> Path:
+        return self.path / self.CHECKPOINTS
 
-def resume_state(
-    cfg: Config, run_dir: str | Path, *, required: bool
-) -> tuple[Path, dict[str, Any]] | None:
-    """The checkpoint to continue ``run_dir`` from (path and state), or None to start at zero.
+    @property
+    def scalars_dir(self) -> Path:
+        return self.path / self.METRICS / "scalars"
 
-    ``cfg`` must be the run the dir holds (:func:`check_same_run`; e.g. a larger
-    ``total_frames`` may differ), and so must the checkpoint's own record of its config.
-    Damaged checkpoints are skipped with a warning; with ``required`` (``resume=<dir>``) a run
-    dir without any checkpoint is an error. Nothing in the dir is changed.
-    """
-    run_dir = Path(run_dir)
-    if required or (run_dir / CONFIG_FILE).exists():
-        check_same_run(cfg, run_dir)
-    if not list_checkpoints(run_dir / "checkpoints"):
-        check(not required, f"{run_dir} has no checkpoint to resume from; start a new run")
-        return None
-    path, state = load_latest(run_dir / "checkpoints")
-    if isinstance(state, dict) and isinstance(state.get("config"), dict):
-        ours, theirs = fingerprint(cfg), fingerprint(state["config"])
+    def metric_path(self, name: str) -> Path:
+        """Where metric ``name`` (e.g. ``eval/return_mean``) is logged."""
+        return self.scalars_dir / f"{name}.csv"
+
+    # -- reading
+    def is_run(self) -> bool:
+        """Whether a run was started here (``config.yaml`` exists)."""
+        return (self.path / self.CONFIG).is_file()
+
+    def read_config(self, *, allow_code: bool = False) -> Config:
+        """The :class:`Config` the run was started with.
+
+        A run dir is data: an ``env.id`` of the form ``module:Id`` (which makes gymnasium import
+        ``module``) or an ``algo.network`` (whose ``_target_`` is imported and called) is refused
+        unless ``allow_code`` (only for run dirs you trust).
+        """
+        path = self.path / self.CONFIG
+        check(self.path.is_dir(), f"run directory {self.path} does not exist")
+        check(
+            path.is_file(),
+            f"{self.path} is not an rlpipe run directory (no {self.CONFIG}); "
+            "pass a directory a training run wrote, e.g. outputs/<date>/<time>",
+        )
+        return config_from_yaml(path.read_bytes(), path, allow_code=allow_code)
+
+    def identity(self) -> tuple[str, str]:
+        """``(env id, algorithm)`` as ``config.yaml`` names them ("?" where unknown), for
+        titles: read as plain data, whatever the config's state."""
+        path = self.path / self.CONFIG
+        cfg = OmegaConf.load(path) if path.is_file() else OmegaConf.create()
+        return tuple(
+            str(OmegaConf.select(cfg, key, default="?")) for key in ("env.id", "algo.name")
+        )
+
+    def check_same_run(self, cfg: Config) -> None:
+        """Unless ``cfg`` is the run this dir holds (same fingerprint), :class:`RunDirConflict`
+        naming the keys that differ."""
+        ours, theirs = fingerprint(cfg), fingerprint(self.read_config(allow_code=True))
         if ours != theirs:
             raise RunDirConflict(
-                f"checkpoint {path} was written by another run: it differs in "
-                f"{fingerprint_diff(ours, theirs)}; pick another run dir (hydra.run.dir=<dir>)"
+                f"{self.path} belongs to another run: it differs in "
+                f"{fingerprint_diff(ours, theirs)}; resume it with the overrides it was started "
+                f"with ({self.original_command()} resume={self.path}) or pick another run dir "
+                "(hydra.run.dir=<dir>)"
             )
-    return path, state
+
+    def checkpoints(self) -> list[Path]:
+        """The resume points (``ckpt_<frames>.pt``: names sort by frames), oldest first."""
+        return sorted(self.checkpoints_dir.glob("ckpt_*.pt"))
+
+    def bests(self) -> list[Path]:
+        """The best evaluation's checkpoints (``best_<frames>.pt``, not resume points), oldest
+        first: the last is the best (one, unless a process died between writing a new one and
+        removing the old)."""
+        return sorted(self.checkpoints_dir.glob("best_*.pt"))
+
+    def latest_checkpoint(self) -> Path | None:
+        found = self.checkpoints()
+        return found[-1] if found else None
+
+    def read_checkpoint(self, name: str | None = None) -> Checkpoint:
+        """The newest checkpoint that loads (``name`` None), the best evaluation's (``"best"``),
+        or ``checkpoints/<name>``."""
+        if name == "best":
+            best = self.bests()
+            check(
+                bool(best),
+                f"{self.path} has no best checkpoint (checkpoints/best_*.pt, kept at each "
+                "evaluation better than the ones before); evaluate the newest with checkpoint=null",
+            )
+            return Checkpoint(best[-1], load_checkpoint(best[-1]))
+        if name is None:
+            check(
+                bool(self.checkpoints()),
+                f"{self.path} has no checkpoint yet (nothing in {self.checkpoints_dir}); "
+                "train first",
+            )
+            return self._newest()
+        path = self.checkpoints_dir / name if not Path(name).is_absolute() else Path(name)
+        check(path.is_file(), f"checkpoint {path} does not exist")
+        return Checkpoint(path, load_checkpoint(path))
+
+    def metric(self, name: str) -> tuple[np.ndarray, np.ndarray]:
+        """``(frames, values)`` of one logged metric; empty arrays when the run has none."""
+        return read_metric(self.metric_path(name))
+
+    def read_summary(self) -> RunResult | None:
+        """What ``summary.json`` reports, or None (not written, or not readable)."""
+        try:
+            data = json.loads((self.path / self.SUMMARY).read_text())
+            return RunResult(**{"run_dir": str(self.path), **data})
+        except (OSError, ValueError, TypeError):
+            return None
+
+    def overrides(self) -> list[str]:
+        """The command-line overrides the run was started with (Hydra's record; none from
+        Python)."""
+        path = self.path / self.HYDRA / "overrides.yaml"
+        return [str(o) for o in OmegaConf.load(path)] if path.is_file() else []
+
+    def original_command(self) -> str:
+        """``python -m rlpipe <the overrides the run was started with>``."""
+        return " ".join(["python -m rlpipe", *self.overrides()])
+
+    # -- training
+    def open(self, cfg: Config, *, required: bool) -> Checkpoint | None:
+        """Check that ``cfg`` is the run this dir holds, if it holds one, and return the
+        checkpoint to resume from (None: start at zero). Writes nothing.
+
+        ``required`` (``resume=<dir>``): a dir without any checkpoint is an error. Damaged
+        checkpoints are skipped with a warning; one written by another run is refused.
+        """
+        if required or self.is_run():
+            self.check_same_run(cfg)
+        self._opened = self._checkpoint_files()
+        if not self.checkpoints():
+            check(not required, f"{self.path} has no checkpoint to resume from; start a new run")
+            return None
+        found = self._newest()
+        stored = found.state.get("config") if isinstance(found.state, dict) else None
+        if isinstance(stored, dict) and fingerprint(cfg) != fingerprint(stored):
+            raise RunDirConflict(
+                f"checkpoint {found.path} was written by another run: it differs in "
+                f"{fingerprint_diff(fingerprint(cfg), fingerprint(stored))}; pick another run "
+                "dir (hydra.run.dir=<dir>)"
+            )
+        return found
+
+    @contextmanager
+    def session(self, config: Config | None, frames: int, keep: int) -> Iterator[None]:
+        """Hold the lock and begin the run at ``frames`` (see the class docstring); a session
+        already held by this object is joined. ``config`` (None: not known) is written to
+        ``config.yaml``; ``keep`` checkpoints are kept."""
+        if self._lock is not None:
+            yield
+            return
+        with self._locked():
+            self._keep = keep
+            if self._opened is not None and self._checkpoint_files() != self._opened:
+                raise RunDirConflict(
+                    f"{self.path} changed while this run was being built (another process "
+                    "wrote checkpoints since it was opened); start it again"
+                )
+            try:
+                if config is not None:
+                    self.save_config(config)
+                truncate_metrics(self.scalars_dir, frames)
+                self._prune()
+                best = self.bests()
+                kept = [path for path in best if _frames(path) <= frames][-1:]
+                for path in best:
+                    if path not in kept:
+                        path.unlink()
+            except OSError as err:
+                raise self.unwritable(err) from err
+            yield
+
+    @contextmanager
+    def _locked(self) -> Iterator[None]:
+        """The lock file, held: a second process trying to lock the dir gets
+        :class:`RunDirConflict` naming the holder's PID (the OS drops the lock with the process,
+        however it dies)."""
+        path = self.path / self.LOCK
+        try:
+            self.path.mkdir(parents=True, exist_ok=True)
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as err:
+            raise self.unwritable(err) from err
+        try:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
+                raise RunDirConflict(
+                    f"{self.path} is in use by another rlpipe process (pid {holder}); wait for "
+                    "it to end or pick another run dir (hydra.run.dir=<dir>)"
+                ) from None
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+            self._lock = fd
+            yield
+        finally:
+            self._lock = None
+            os.close(fd)  # closing the descriptor releases the lock
+
+    def save_config(self, cfg: Config) -> Path:
+        """Write ``config.yaml`` unless it already holds ``cfg`` (atomically)."""
+        path = self.path / self.CONFIG
+        data = OmegaConf.to_yaml(config_to_dict(cfg)).encode()
+        try:
+            if path.is_file() and path.read_bytes() == data:
+                return path
+            self.path.mkdir(parents=True, exist_ok=True)
+            write_atomic(path, data)
+        except OSError as err:
+            raise self.unwritable(err) from err
+        return path
+
+    def save_checkpoint(self, state: dict[str, Any], frames: int) -> Path:
+        """Write the resume point at ``frames`` (atomically) and prune to the newest ``keep``."""
+        self._check_session()
+        path = save_checkpoint(state, self.checkpoints_dir / f"ckpt_{frames:012d}.pt")
+        self._prune()
+        return path
+
+    def save_best(self, state: dict[str, Any], frames: int) -> Path:
+        """Write the best evaluation's checkpoint (``best_<frames>.pt``), then drop older ones."""
+        self._check_session()
+        older = self.bests()
+        path = self.checkpoints_dir / f"best_{frames:012d}.pt"
+        save_checkpoint(state, path, fault="best_write")
+        for stale in older:
+            stale.unlink(missing_ok=True)
+        return path
+
+    def write_summary(self, result: RunResult) -> None:
+        """Write ``summary.json`` (atomically)."""
+        self._check_session()
+        text = json.dumps(asdict(result), indent=2) + "\n"
+        write_atomic(self.path / self.SUMMARY, text.encode(), fault="summary")
+
+    def write_hydra_record(self, job_cfg: DictConfig, hydra_cfg: DictConfig) -> None:
+        """Hydra's record of the job (``.hydra/config.yaml``, ``hydra.yaml``,
+        ``overrides.yaml``) unless the dir has one: a resumed run keeps the record of its start.
+
+        ``conf/config.yaml`` turns Hydra's own writing off (``hydra.output_subdir: null``):
+        Hydra writes before a job can check that the dir is its own."""
+        record = self.path / self.HYDRA
+        try:
+            record.mkdir(parents=True)
+        except FileExistsError:
+            return
+        OmegaConf.save(job_cfg, record / "config.yaml")
+        OmegaConf.save(OmegaConf.create({"hydra": hydra_cfg}), record / "hydra.yaml")
+        OmegaConf.save(hydra_cfg.overrides.task, record / "overrides.yaml")
+
+    def unwritable(self, err: OSError) -> RlpipeError:
+        """The one-line error for a run dir that cannot be written."""
+        return RlpipeError(
+            f"cannot write the run directory {self.path}: {err.strerror or err}; "
+            "pick a writable one with hydra.run.dir=<dir>"
+        )
+
+    def _newest(self) -> Checkpoint:
+        """The newest resume point that loads, past damaged ones (a warning each)."""
+        found = self.checkpoints()
+        check(bool(found), f"no checkpoint in {self.checkpoints_dir}")
+        damaged = []
+        for path in reversed(found):
+            try:
+                state = load_checkpoint(path)
+            except CorruptCheckpoint as err:
+                damaged.append(str(err))
+                continue
+            for message in damaged:
+                print(f"rlpipe: warning: {message}; using {path.name} instead", file=sys.stderr)
+            return Checkpoint(path, state)
+        raise RlpipeError(
+            f"every checkpoint in {self.checkpoints_dir} is damaged ({len(found)} files); "
+            "cannot resume"
+        )
+
+    def _prune(self) -> None:
+        """Keep the newest ``keep`` resume points that load, delete older ones, move damaged (or
+        refused) ones to ``checkpoints/damaged/`` with a warning, and remove the temp files of
+        killed writes."""
+        for temp in self.checkpoints_dir.glob(f".*.pt{TEMP_SUFFIX}"):  # of a ckpt or a best
+            temp.unlink(missing_ok=True)
+        kept = 0
+        for path in reversed(self.checkpoints()):
+            if kept >= self._keep:
+                path.unlink()
+            elif loads(path):
+                kept += 1
+            else:
+                aside = self.checkpoints_dir / "damaged" / path.name
+                aside.parent.mkdir(exist_ok=True)
+                os.replace(path, aside)
+                print(
+                    f"rlpipe: warning: moved damaged checkpoint {path} to {aside}", file=sys.stderr
+                )
+
+    def _checkpoint_files(self) -> tuple[tuple[str, int, int], ...]:
+        """Name, size and modification time of every resume point."""
+        return tuple((p.name, p.stat().st_size, p.stat().st_mtime_ns) for p in self.checkpoints())
+
+    def _check_session(self) -> None:
+        assert self._lock is not None, "RunDir writes need a session (RunDir.session)"
+
+
+def _frames(checkpoint: Path) -> int:
+    """The frames in a checkpoint's name (``ckpt_<frames>.pt``, ``best_<frames>.pt``)."""
+    return int(checkpoint.stem.rpartition("_")[2])

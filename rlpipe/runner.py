@@ -1,15 +1,16 @@
-"""The one training loop every algorithm shares."""
+"""The one training loop every algorithm shares (:class:`Runner`), the hooks on it
+(:class:`Callback`), and the narrow interface through which it writes its run dir
+(:class:`RunStore`, which :class:`rlpipe.rundir.RunDir` implements)."""
 
 from __future__ import annotations
 
-import json
 import math
-import signal
 import time
 from collections.abc import Sequence
+from contextlib import AbstractContextManager
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 from torchrl.envs import EnvBase
 from torchrl.record.loggers import Logger
@@ -18,24 +19,55 @@ from tqdm.auto import tqdm
 from rlpipe import faults
 from rlpipe.algos.base import EPISODE_RETURN, Algorithm, Metrics
 from rlpipe.cadence import Cadence, Window
-from rlpipe.callbacks import Callback
-from rlpipe.checkpoint import (
-    best_path,
-    checkpoint_path,
-    list_best,
-    list_checkpoints,
-    save_checkpoint,
-)
-from rlpipe.config import Config
+from rlpipe.config import Config, config_to_dict
 from rlpipe.episodes import EvalResult, EvalStopped, evaluate
-from rlpipe.errors import RlpipeError
-from rlpipe.files import write_atomic
-from rlpipe.outcomes import Diverged, Interrupted, RunResult, check_budget
+from rlpipe.errors import RlpipeError, check
+from rlpipe.outcomes import Diverged, Interrupted, RunResult
 from rlpipe.progress import ProgressBar
-from rlpipe.rundir import config_to_dict, describe_run, save_config
 from rlpipe.runtime import rng_state, set_rng_state
+from rlpipe.signals import StopSignals
 
-SUMMARY_FILE = "summary.json"
+
+class RunStore(Protocol):
+    """What the runner needs of its run directory (:class:`rlpipe.rundir.RunDir`)."""
+
+    path: Path
+
+    def session(
+        self, config: Config | None, frames: int, keep: int
+    ) -> AbstractContextManager[None]: ...
+
+    def save_checkpoint(self, state: dict[str, Any], frames: int) -> Path: ...
+
+    def save_best(self, state: dict[str, Any], frames: int) -> Path: ...
+
+    def latest_checkpoint(self) -> Path | None: ...
+
+    def read_summary(self) -> RunResult | None: ...
+
+    def write_summary(self, result: RunResult) -> None: ...
+
+
+class Callback:
+    """Hooks into a :class:`Runner`: subclass and override the ones you need.
+
+    Every hook does nothing by default; pass instances as ``Runner(..., callbacks=[...])``.
+    """
+
+    def on_eval(self, runner: Runner, result: EvalResult) -> None:
+        """After each greedy evaluation (``runner.algo.frames`` frames in)."""
+
+    def on_end(self, runner: Runner, result: RunResult) -> None:
+        """After the final evaluation and checkpoint, before ``run`` returns."""
+
+
+def check_budget(algo: Algorithm, total_frames: int | None) -> None:
+    """A run needs ``total_frames`` unless the algorithm has a budget of its own."""
+    check(
+        total_frames is not None or algo.budget is not None,
+        f"total_frames=null, but {type(algo).__name__} has no budget of its own "
+        "(epochs, iterations): set total_frames=N",
+    )
 
 
 class Runner:
@@ -46,22 +78,23 @@ class Runner:
 
     Shows a progress bar (frames/s, latest training episode return, last eval), evaluates
     the greedy policy every ``eval_every`` frames and at the end, logs ``train/``, ``eval/``
-    and ``time/`` metrics through a TorchRL logger, and writes atomic checkpoints every
-    ``checkpoint_every`` frames and at the end into ``<run_dir>/checkpoints`` (newest
-    ``keep_checkpoints`` kept). ``callbacks`` (:class:`Callback`) see every evaluation and the end.
+    and ``time/`` metrics through a TorchRL logger, and checkpoints every ``checkpoint_every``
+    frames and at the end (newest ``keep_checkpoints`` kept), and at every evaluation better
+    than the ones before, through ``run_dir`` (a :class:`RunStore`: ``rlpipe.RunDir(path)``),
+    which it holds for the whole run. ``callbacks`` (:class:`Callback`) see every evaluation
+    and the end.
 
-    ``config`` (a :class:`~rlpipe.config.Config`) is written to ``<run_dir>/config.yaml`` and
-    into every checkpoint, so ``load_run``, ``rlpipe.evaluate``, ``rlpipe.plot`` and ``train``
-    (resume) work on the run; left out, it is read off an rlpipe algorithm built on
-    ``functools.partial(make_env, EnvConfig(...), seed=s)`` (:func:`~rlpipe.rundir.describe_run`);
-    otherwise no ``config.yaml`` is written.
+    ``config`` (a :class:`~rlpipe.config.Config`) is written to ``config.yaml`` and into every
+    checkpoint, so ``load_run``, ``rlpipe.evaluate``, ``rlpipe.plot`` and ``train`` (resume)
+    work on the run; left out, it is the algorithm's own record
+    (:meth:`~rlpipe.algos.base.Algorithm.run_config`); without one no ``config.yaml`` is written.
     """
 
     def __init__(
         self,
         algo: Algorithm,
         eval_env: EnvBase,
-        run_dir: str | Path,
+        run_dir: RunStore,
         *,
         total_frames: int | None,
         eval_every: int = 10_000,
@@ -75,6 +108,15 @@ class Runner:
         callbacks: Sequence[Callback] = (),
         config: Config | None = None,
     ) -> None:
+        check(
+            isinstance(algo, Algorithm),
+            f"the Runner drives subclasses of rlpipe.Algorithm; {type(algo).__name__} is not one",
+        )
+        check(
+            not isinstance(run_dir, (str, Path)),
+            f"the Runner writes through a run dir object: Runner(algo, eval_env, "
+            f"rlpipe.RunDir({str(run_dir)!r}), ...)",
+        )
         check_budget(algo, total_frames)
         run_keys = dict(
             total_frames=total_frames,
@@ -82,13 +124,14 @@ class Runner:
             eval_episodes=eval_episodes,
             checkpoint_every=checkpoint_every,
         )
-        # what config.yaml records: given, or read off the algorithm and its env factory
-        self.config = config or describe_run(
-            algo, **run_keys, keep_checkpoints=keep_checkpoints, progress=progress
+        # what config.yaml records: given, or the algorithm's own record of its config
+        self.config = config or algo.run_config(
+            **run_keys, keep_checkpoints=keep_checkpoints, progress=progress
         )
         self.algo = algo
         self.eval_env = eval_env
-        self.run_dir = Path(run_dir)
+        self.store = run_dir
+        self.run_dir = run_dir.path
         self.total_frames = total_frames
         self.eval_every = eval_every
         self.eval_episodes = eval_episodes
@@ -105,7 +148,7 @@ class Runner:
         self._eval_seconds = 0.0
         self._elapsed_at = -1  # frames of the last time/elapsed row (one row per frames)
         self._best = -math.inf  # the best evaluation's mean so far (checkpoints/best_*.pt)
-        self._signal: int | None = None
+        self._signals = StopSignals(on_stop=algo.request_stop)  # a long iteration may end early
         self._pending_eval = False  # an evaluation a signal cut short, to run first on resume
         self._last_return = math.nan  # of the latest finished training episode
         self._window = Window()  # scalars since the last log flush
@@ -119,22 +162,18 @@ class Runner:
         raises :class:`Diverged` without writing a checkpoint. A run resumed after its final
         checkpoint trains, evaluates and logs nothing: it reports the result it had.
         """
-        if self.finished and not self._pending_eval:
-            stored = self._stored_summary()
-            if stored is not None or self.last_eval is not None:
-                return self._finished_before(stored)
-        if self.config is not None:
-            save_config(self.config, self.run_dir)
-        # a best checkpoint from the part of the run being redone goes, and all but the newest
-        bests = list_best(self.run_dir / "checkpoints")
-        kept = [path for path in bests if _frames(path) <= self.algo.frames]
-        for path in bests:
-            if path not in kept[-1:]:
-                path.unlink()
-        if hasattr(self.algo, "frame_limit"):  # it can end its last batch at the budget
-            self.algo.frame_limit = self.total_frames
+        with self.store.session(self.config, self.algo.frames, self.keep_checkpoints):
+            if self.finished and not self._pending_eval:
+                stored = self._stored_summary()
+                if stored is not None or self.last_eval is not None:
+                    return self._finished_before(stored)
+            return self._loop()
+
+    def _loop(self) -> RunResult:
+        """Train, evaluate and checkpoint to the end of the budget; the summary and callbacks."""
+        self.algo.request_stop(False)
+        self.algo.limit_frames(self.total_frames)  # it can end its last batch at the budget
         start = self._start = time.perf_counter() - self._elapsed_before
-        handlers = self._catch_signals()
         frames = self.algo.frames
         log, evaluation, checkpoint = (
             Cadence(every, frames)
@@ -142,7 +181,7 @@ class Runner:
         )
         self._window_start, self._window_frames = time.perf_counter(), frames
         bar = ProgressBar(self.algo, self.total_frames, enabled=self.progress)
-        try:
+        with bar, self._signals as signals:
             if self._pending_eval and not self.finished:  # the one a signal cut short
                 self._evaluate()
             while not self.finished:
@@ -157,31 +196,16 @@ class Runner:
                     bar.show(self._last_return, self.last_eval)
                 if not self.finished and evaluation.due(frames):
                     self._evaluate()
-                if self._signal is not None:
-                    raise Interrupted(self._signal, frames, self.save())
+                if signals.received is not None:
+                    raise Interrupted(signals.received, frames, self.save())
                 if not self.finished and checkpoint.due(frames):
                     self.save()
             self._evaluate()
-            if self._signal is not None:
-                raise Interrupted(self._signal, self.algo.frames, self.save())
+            if signals.received is not None:
+                raise Interrupted(signals.received, self.algo.frames, self.save())
             self.save()
             faults.point("final_checkpoint")
-        finally:
-            bar.close()
-            for signum, handler in handlers.items():
-                signal.signal(signum, handler)
-        result = RunResult(
-            eval_mean=self.last_eval.mean,
-            eval_std=self.last_eval.std,
-            eval_episodes=len(self.last_eval.returns),
-            frames=self.algo.frames,
-            wall_time=time.perf_counter() - start,
-            run_dir=str(self.run_dir),
-        )
-        self._write_summary(result)
-        for callback in self.callbacks:
-            callback.on_end(self, result)
-        return result
+        return self._finish(time.perf_counter() - start)
 
     def _finished_before(self, stored: RunResult | None) -> RunResult:
         """The result of a run resumed at (or past) its budget: its ``summary.json``, or, when
@@ -193,30 +217,27 @@ class Runner:
         )
         if stored is not None:
             return stored
+        return self._finish(self._elapsed_before)
+
+    def _finish(self, wall_time: float) -> RunResult:
+        """The run's result from its last evaluation: ``summary.json``, then the callbacks."""
         result = RunResult(
             eval_mean=self.last_eval.mean,
             eval_std=self.last_eval.std,
             eval_episodes=len(self.last_eval.returns),
             frames=self.algo.frames,
-            wall_time=self._elapsed_before,
+            wall_time=wall_time,
             run_dir=str(self.run_dir),
         )
-        self._write_summary(result)
+        self.store.write_summary(result)
         for callback in self.callbacks:
             callback.on_end(self, result)
         return result
 
     def _stored_summary(self) -> RunResult | None:
         """``summary.json`` when it reports the frames the algorithm is at."""
-        try:
-            result = RunResult(**json.loads((self.run_dir / SUMMARY_FILE).read_text()))
-        except (OSError, ValueError, TypeError):
-            return None
-        return result if result.frames == self.algo.frames else None
-
-    def _write_summary(self, result: RunResult) -> None:
-        text = json.dumps(asdict(result), indent=2) + "\n"
-        write_atomic(self.run_dir / SUMMARY_FILE, text.encode(), fault="summary")
+        result = self.store.read_summary()
+        return result if result is not None and result.frames == self.algo.frames else None
 
     @property
     def finished(self) -> bool:
@@ -232,8 +253,7 @@ class Runner:
         CSVs hold every row up to the checkpoint's frames."""
         if self._window.sums:
             self._flush()
-        path = checkpoint_path(self.run_dir / "checkpoints", self.algo.frames)
-        return save_checkpoint(self._state(), path, keep=self.keep_checkpoints)
+        return self.store.save_checkpoint(self._state(), self.algo.frames)
 
     def _state(self) -> dict[str, Any]:
         """What a checkpoint holds (see :meth:`save`)."""
@@ -259,11 +279,7 @@ class Runner:
         if self.last_eval is None or not self.last_eval.mean > self._best:
             return
         self._best = self.last_eval.mean
-        directory = self.run_dir / "checkpoints"
-        older = list_best(directory)
-        save_checkpoint(self._state(), best_path(directory, self.algo.frames), fault="best_write")
-        for path in older:
-            path.unlink(missing_ok=True)
+        self.store.save_best(self._state(), self.algo.frames)
 
     def restore(self, state: dict[str, Any]) -> None:
         """Continue from a checkpoint :meth:`save` wrote (algorithm, RNGs, clocks, last
@@ -283,27 +299,8 @@ class Runner:
         self._elapsed_at = int(runner.get("elapsed_at", -1))
         self._best = float(runner.get("best_eval", -math.inf))
 
-    def _catch_signals(self) -> dict[int, Any]:
-        """Route SIGINT/SIGTERM to a flag checked after each iteration (main thread only)."""
-
-        def handle(signum: int, frame: Any) -> None:
-            if self._signal is not None:  # a second signal: stop now
-                signal.signal(signum, signal.SIG_DFL)
-                signal.raise_signal(signum)
-            self._signal = signum
-            self.algo.should_stop = self._stop_requested  # a long iteration may end early
-            tqdm.write(f"rlpipe: {signal.Signals(signum).name}: checkpointing after this iteration")
-
-        previous = {}
-        try:
-            for signum in (signal.SIGINT, signal.SIGTERM):
-                previous[signum] = signal.signal(signum, handle)
-        except ValueError:  # not the main thread: leave signals alone
-            pass
-        return previous
-
     def _stop_requested(self) -> bool:
-        return self._signal is not None
+        return self._signals.received is not None
 
     def _flush(self) -> None:
         """Log the window's means with the frame rate and elapsed time."""
@@ -318,12 +315,10 @@ class Runner:
         if not bad and not all(bool(p.isfinite().all()) for p in self.algo.policy.parameters()):
             bad = ["policy parameters"]
         if bad:
-            kept = list_checkpoints(self.run_dir / "checkpoints")
             raise Diverged(
                 f"training diverged at {self.algo.frames:,} frames: {bad[0]} is not finite; "
                 f"stopped without a new checkpoint (last good: "
-                f"{kept[-1] if kept else 'none'}); "
-                f"{getattr(self.algo, 'divergence_hint', 'try a smaller algo.lr')}"
+                f"{self.store.latest_checkpoint() or 'none'}); {self.algo.divergence_hint}"
             )
 
     def _record(self, metrics: Metrics) -> None:
@@ -378,11 +373,6 @@ class Runner:
                 f"cannot write metrics in {self.run_dir}: {err.strerror or err}; free some disk "
                 "space or pick a writable hydra.run.dir, then resume"
             ) from err
-
-
-def _frames(checkpoint: Path) -> int:
-    """The frames in a checkpoint's name (``ckpt_<frames>.pt``, ``best_<frames>.pt``)."""
-    return int(checkpoint.stem.rpartition("_")[2])
 
 
 def _all_finite(value: float | list[float]) -> bool:

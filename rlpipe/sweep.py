@@ -28,10 +28,10 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
 from rlpipe.cli import USER_ERRORS, format_error
-from rlpipe.errors import check
+from rlpipe.errors import RunDirConflict, check
 from rlpipe.files import write_atomic
 from rlpipe.outcomes import Interrupted, RunResult
-from rlpipe.rundir import RunDirConflict
+from rlpipe.rundir import RunDir
 
 log = logging.getLogger(__name__)
 
@@ -97,16 +97,16 @@ def run_sweep_job(
     job: Callable[[], RunResult],
     run_dir: str | Path,
     *,
-    record: Callable[[Path], None],
+    record: Callable[[RunDir], None],
     rejected_dir: str | Path,
     sweep_dir: str | Path,
 ) -> RunResult | None:
     """Run one job of a sweep; on an error, record it and return None; on a signal
     (:class:`~rlpipe.outcomes.Interrupted`), record it and stop the sweep (:class:`SweepStopped`).
 
-    The error goes to ``error.json`` beside the job's record (``record(dir)`` writes Hydra's
+    The error goes to ``error.json`` beside the job's record (``record(RunDir(dir))`` writes Hydra's
     ``.hydra/`` files where missing) in ``run_dir``, or, when the run dir belongs to another run
-    or another process (:class:`~rlpipe.rundir.RunDirConflict`: jobs that resolve to one dir),
+    or another process (:class:`~rlpipe.errors.RunDirConflict`: jobs that resolve to one dir),
     in ``rejected_dir`` so that nothing of that run changes. User errors are reported in their
     one line; anything else (a bug) also logs its traceback.
     """
@@ -124,7 +124,7 @@ def run_sweep_job(
             message = f"{type(err).__name__}: {format_error(err)}"
         print(f"rlpipe: error: {message} (job in {run_dir})", file=sys.stderr)
         where = Path(rejected_dir if isinstance(err, RunDirConflict) else run_dir)
-        record(where)
+        record(RunDir(where))
         _mark(where, ERROR_FILE, message, time.perf_counter() - start)
         return None
     for stale in (ERROR_FILE, INTERRUPTED_FILE):  # of an earlier attempt (resume_sweep)
@@ -165,13 +165,12 @@ def collect_jobs(sweep_dir: str | Path) -> list[JobRow]:
         overrides = OmegaConf.to_container(OmegaConf.load(hydra_dir / "overrides.yaml"))
         number = OmegaConf.load(hydra_dir / "hydra.yaml").hydra.job.num
         row = JobRow(int(number), list(overrides), "unfinished", str(job_dir))
-        summary, error = job_dir / "summary.json", job_dir / ERROR_FILE
-        interrupted = job_dir / INTERRUPTED_FILE
-        if summary.is_file():
-            data = json.loads(summary.read_text())
+        error, interrupted = job_dir / ERROR_FILE, job_dir / INTERRUPTED_FILE
+        summary = RunDir(job_dir).read_summary()
+        if summary is not None:
             row.status = "ok"
             for key in ("eval_mean", "eval_std", "eval_episodes", "frames", "wall_time"):
-                setattr(row, key, data[key])
+                setattr(row, key, getattr(summary, key))
         elif interrupted.is_file() or error.is_file():
             data = json.loads((interrupted if interrupted.is_file() else error).read_text())
             row.status = "interrupted" if interrupted.is_file() else "failed"

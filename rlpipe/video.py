@@ -18,7 +18,6 @@ from rlpipe.envs import make_env, sub_envs
 from rlpipe.errors import RlpipeError, check
 
 MAX_STEPS = 10_000  # for envs without a time limit
-VIDEO_DIR = "videos"
 
 
 def make_render_env(cfg: EnvConfig, seed: int | None = None) -> EnvBase:

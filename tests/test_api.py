@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import ast
 import importlib
 import inspect
 import pkgutil
@@ -31,13 +30,10 @@ def test_readme_python_example_runs(tmp_path, monkeypatch):
 
 
 def _exports() -> dict[str, object]:
-    """What ``rlpipe/__init__.py`` binds each public name to, read from its import lines."""
-    tree = ast.parse(Path(rlpipe.__file__).read_text())
+    """What ``rlpipe/__init__.py`` binds each public name to: the object in its module."""
     return {
-        alias.asname or alias.name: getattr(importlib.import_module(node.module), alias.name)
-        for node in tree.body
-        if isinstance(node, ast.ImportFrom) and node.module
-        for alias in node.names
+        name: getattr(importlib.import_module(module), name)
+        for name, module in rlpipe._MODULES.items()
     }
 
 

@@ -5,31 +5,30 @@ from __future__ import annotations
 import pytest
 import torch
 
-from rlpipe.checkpoint import (
-    UnsafeCheckpoint,
-    checkpoint_path,
-    list_checkpoints,
-    load_checkpoint,
-    save_checkpoint,
-)
+from rlpipe.checkpoint import UnsafeCheckpoint, load_checkpoint, save_checkpoint
+from rlpipe.rundir import RunDir
 
 
 def test_save_load_and_keep_last_k(tmp_path):
-    for frames in (10, 20, 30, 40):
-        save_checkpoint(
-            {"frames": frames, "w": torch.ones(2) * frames},
-            checkpoint_path(tmp_path, frames),
-            keep=2,
-        )
-    paths = list_checkpoints(tmp_path)
+    run = RunDir(tmp_path)
+    with run.session(None, frames=0, keep=2):
+        for frames in (10, 20, 30, 40):
+            run.save_checkpoint({"frames": frames, "w": torch.ones(2) * frames}, frames)
+    paths = run.checkpoints()
     assert [p.name for p in paths] == ["ckpt_000000000030.pt", "ckpt_000000000040.pt"]
     state = load_checkpoint(paths[-1])
     assert state["frames"] == 40 and torch.equal(state["w"], torch.full((2,), 40.0))
-    assert not list(tmp_path.glob("*.tmp")) and not list(tmp_path.glob(".*"))
+    assert not list(run.checkpoints_dir.glob("*.tmp")) and not list(run.checkpoints_dir.glob(".*"))
+
+
+def test_writes_outside_a_session_are_refused(tmp_path):
+    with pytest.raises(AssertionError, match="need a session"):
+        RunDir(tmp_path).save_checkpoint({"frames": 1}, 1)
+    assert not tmp_path.joinpath("checkpoints").exists()
 
 
 def test_failed_write_leaves_previous_checkpoint_intact(tmp_path):
-    path = checkpoint_path(tmp_path, 1)
+    path = tmp_path / "ckpt_000000000001.pt"
     save_checkpoint({"ok": torch.zeros(1)}, path)
 
     class Unpicklable:

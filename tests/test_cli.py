@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 
 import pytest
 from conftest import TINY
@@ -19,6 +21,20 @@ def test_default_job_trains_and_writes_its_run_dir(rlpipe_cli, tmp_path):
     assert names[0].startswith("best_")  # the best evaluation's, beside the newest ones
     assert names[1:] == ["ckpt_000000000100.pt", "ckpt_000000000200.pt"]
     assert (run / "metrics" / "scalars" / "eval" / "return_mean.csv").exists()
+    # the console is rlpipe's: no third-party log lines (TorchRL's INFO, in colour)
+    assert "[torchrl]" not in proc.stdout + proc.stderr and "\x1b[" not in proc.stdout
+
+
+def test_the_python_api_prints_no_third_party_log_lines(tmp_path):
+    code = (
+        "from rlpipe import Config, train; "
+        "train(Config(total_frames=100, eval_every=100, eval_episodes=1, progress=False), 'run')"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=300
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout == "" and "[torchrl]" not in proc.stderr, proc.stdout + proc.stderr
 
 
 def test_groups_compose_from_the_command_line(rlpipe_cli, tmp_path):
@@ -120,3 +136,17 @@ def test_a_group_added_without_plus_is_told_to_use_it(rlpipe_cli, group):
     assert done.returncode == 2
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].endswith(f"use +{group}=dqn_cartpole"), lines
+
+
+@pytest.mark.parametrize(
+    "overrides", [["algo=ars", "env=bipedal"], ["+experiment=dqn_cartpole", "seed=3", "--resolve"]]
+)
+def test_cfg_job_prints_what_hydra_prints(tmp_path, overrides):
+    """``--cfg job`` is composed once by rlpipe (checks included); ``-p _global_`` makes Hydra
+    print the same config itself."""
+    from conftest import run_module
+
+    ours = run_module("rlpipe", *overrides, "--cfg", "job", cwd=tmp_path)
+    hydras = run_module("rlpipe", *overrides, "--cfg", "job", "-p", "_global_", cwd=tmp_path)
+    assert ours.returncode == hydras.returncode == 0, ours.stderr + hydras.stderr
+    assert ours.stdout == hydras.stdout and ours.stdout.startswith("env:\n")

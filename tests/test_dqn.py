@@ -15,6 +15,7 @@ from rlpipe.algos.dqn import epsilon, learning_rate, n_step_transitions
 from rlpipe.config import EnvConfig
 from rlpipe.envs import make_env
 from rlpipe.errors import RlpipeError
+from rlpipe.rundir import RunDir
 
 SMALL = dict(
     batch_size=8, buffer_size=64, learning_starts=8, frames_per_batch=8, updates_per_batch=2
@@ -240,7 +241,7 @@ def test_total_frames_is_exact_to_whole_steps_of_the_copies(tmp_path, total, exp
         DQNConfig(**{**SMALL, "frames_per_batch": 16, "buffer_size": 128}),
     )
     eval_env = make_env(env_cfg, num_envs=2, seed=1)
-    result = Runner(algo, eval_env, tmp_path, total_frames=total, progress=False).run()
+    result = Runner(algo, eval_env, RunDir(tmp_path), total_frames=total, progress=False).run()
     assert result.frames == algo.frames == len(algo.buffer) == expected
     steps = algo.buffer[:expected]["observation"]
     assert len(torch.unique(steps, dim=0)) == expected  # no step stored twice

@@ -28,12 +28,13 @@ import pytest
 import torch
 from conftest import run_module
 
-from rlpipe.checkpoint import list_best, load_checkpoint, load_latest
+from rlpipe.checkpoint import load_checkpoint
+from rlpipe.rundir import RunDir
 
 FAULTS = pytest.mark.faults
 TAG_VAR = "RLPIPE_TEST_TAG"
 RUN_TIMEOUT = 900  # seconds for one subprocess run (2 shared cores: runs can crawl)
-IGNORED = {".lock", "__main__.log"}  # the last PID, Hydra's job log: may change on a refusal
+IGNORED = {".lock", "rlpipe.log"}  # the last PID, Hydra's job log: may change on a refusal
 # several training episodes may end in one step: these rows share frames, every other metric's
 # frames are strictly increasing (one row per logging event)
 EPISODE_METRICS = {"train/episode_return", "train/episode_length"}
@@ -287,9 +288,10 @@ def assert_run_intact(run_dir: Path, reference: Reference, *, tag: str | None = 
     assert tuple(rows["eval/return_mean"]) == reference.eval_frames
     temporary = [str(p) for p in run_dir.rglob("*.tmp")]
     assert not temporary, f"temporary files left: {temporary}"
-    path, state = load_latest(run_dir / "checkpoints")
+    newest = RunDir(run_dir).read_checkpoint()
+    path, state = newest.path, newest.state
     assert state["frames"] == reference.frames, path
-    (best,) = list_best(run_dir / "checkpoints")  # one best-eval checkpoint, of this run
+    (best,) = RunDir(run_dir).bests()  # one best-eval checkpoint, of this run
     assert load_checkpoint(best)["frames"] <= reference.frames
     if tag is not None:
         assert_no_live_processes(tag)
@@ -371,14 +373,14 @@ def test_runs_killed_at_fault_points_resume_intact(tmp_path, reference, algo, ch
             last = result.stderr.strip().splitlines()[-1]
             assert "SIGTERM" in last and f"resume={run_dir}" in last, result.stderr
             assert "Traceback" not in result.stderr
-            load_latest(run_dir / "checkpoints")  # it checkpointed before it stopped
+            RunDir(run_dir).read_checkpoint()  # it checkpointed before it stopped
         if fault.startswith(("checkpoint_write", "best_write")):  # the temporary file written
             assert list((run_dir / "checkpoints").glob(".*.tmp")), "no checkpoint write killed"
         if fault in ("final_checkpoint", "summary"):  # after the final checkpoint, no summary
-            assert load_latest(run_dir / "checkpoints")[1]["frames"] == ref.frames
+            assert RunDir(run_dir).read_checkpoint().state["frames"] == ref.frames
             assert not (run_dir / "summary.json").exists()
         if fault == "truncate":  # every CSV whole: its old bytes, or those cut to the checkpoint
-            _, state = load_latest(run_dir / "checkpoints")
+            state = RunDir(run_dir).read_checkpoint().state
             after = _csv_bytes(run_dir)
             assert after.keys() == before.keys()
             for path, data in before.items():
@@ -759,5 +761,5 @@ def test_mbrl_honours_sigterm_within_ten_seconds(tmp_path, during):
     assert took <= 10, f"took {took:.1f} s to stop after SIGTERM"
     assert f"resume={run_dir}" in stderr.strip().splitlines()[-1], stderr
     assert list(checkpoints.glob("ckpt_*.pt"))
-    load_latest(checkpoints)
+    RunDir(checkpoints.parent).read_checkpoint()
     assert_no_live_processes(tag)

@@ -241,15 +241,25 @@ def checkpoint(algo: MBRL) -> dict:
     return torch.load(buf, weights_only=True)
 
 
-def test_should_stop_ends_the_step_after_a_sub_batch_in_a_consistent_state():
+class _StopsWhen(MBRL):
+    """MBRL whose stop request is a condition on its own state (a signal at a chosen moment)."""
+
+    when = staticmethod(lambda algo: False)
+
+    @property
+    def stop_requested(self) -> bool:
+        return self.when(self)
+
+
+def test_a_stop_request_ends_the_step_after_a_sub_batch_in_a_consistent_state():
     """A signal mid-collection: return after the current sub-batch without fitting, every frame
     stored and normalised; the next step completes the iteration and fits, also after a resume."""
     torch.manual_seed(0)
     # 2 envs x 20 steps per iteration, in sub-batches of 10 steps
     cfg = MBRLConfig(**{**SMALL, "frames_per_batch": 40})
     envs = partial(make_env, PENDULUM, num_envs=2, seed=0)
-    algo = MBRL(envs, cfg)
-    algo.should_stop = lambda: algo.frames > 0  # True once the first sub-batch is in
+    algo = _StopsWhen(envs, cfg)
+    algo.when = lambda algo: algo.frames > 0  # True once the first sub-batch is in
     metrics = algo.train_step()
     assert 0 < algo.frames < cfg.frames_per_batch and algo.frames == 20
     assert len(algo.buffer) == algo.frames == int(algo.model.obs_norm.count)
@@ -263,7 +273,7 @@ def test_should_stop_ends_the_step_after_a_sub_batch_in_a_consistent_state():
     assert restored.frames == 20 and len(restored.buffer) == 20
     assert restored.mpc.warmup  # 20 >= warmup_frames, but no fit yet
 
-    algo.should_stop = lambda: False
+    algo.when = lambda algo: False
     for run in (algo, restored):  # the rest of the iteration, then the fit
         metrics = run.train_step()
         assert run.frames == len(run.buffer) == cfg.frames_per_batch
@@ -275,11 +285,11 @@ def test_should_stop_ends_the_step_after_a_sub_batch_in_a_consistent_state():
     restored.close()
 
 
-def test_should_stop_ends_the_fit_after_an_adam_step():
+def test_a_stop_request_ends_the_fit_after_an_adam_step():
     torch.manual_seed(0)
     cfg = MBRLConfig(**{**SMALL, "frames_per_batch": 40})
-    algo = MBRL(partial(make_env, PENDULUM, num_envs=2, seed=0), cfg)
-    algo.should_stop = lambda: algo.frames >= 40  # the signal comes during the last sub-batch
+    algo = _StopsWhen(partial(make_env, PENDULUM, num_envs=2, seed=0), cfg)
+    algo.when = lambda algo: algo.frames >= 40  # the signal comes during the last sub-batch
     metrics = algo.train_step()
     assert algo.frames == len(algo.buffer) == 40
     assert "train/model_loss" in metrics and "train/val_dynamics_loss" in metrics

@@ -15,20 +15,16 @@ import pytest
 from rlpipe.errors import RlpipeError
 from rlpipe.figures import plot_run
 from rlpipe.files import TEMP_SUFFIX, check_writable
-from rlpipe.metrics import (
-    find_runs,
-    metric_path,
-    parse_rows,
-    read_metric,
-    truncate_metrics,
-)
+from rlpipe.metrics import parse_rows, truncate_metrics
 from rlpipe.plot import main as plot_main
+from rlpipe.rundir import RunDir
+from rlpipe.runs import find_runs
 
 ROWS = b"0,1.5\n100,2.5\n200,3.5\n"
 
 
 def write_metric(run_dir: Path, name: str, data: bytes) -> Path:
-    path = metric_path(run_dir, name)
+    path = RunDir(run_dir).metric_path(name)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_bytes(data)
     return path
@@ -52,7 +48,7 @@ def test_damaged_tail_is_cut_with_one_warning(
     tmp_path: Path, tail: bytes, capsys: pytest.CaptureFixture[str]
 ) -> None:
     path = write_metric(tmp_path, "eval/return_mean", ROWS + tail)
-    truncate_metrics(tmp_path, 1_000)
+    truncate_metrics(RunDir(tmp_path).scalars_dir, 1_000)
     assert path.read_bytes() == ROWS
     lines = warnings_of(capsys.readouterr().err)
     assert lines == [
@@ -64,7 +60,7 @@ def test_damage_inside_the_kept_rows_ends_them(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     path = write_metric(tmp_path, "train/loss", b"0,1.0\n50,2.0\0\n100,3.0\n")
-    truncate_metrics(tmp_path, 100)
+    truncate_metrics(RunDir(tmp_path).scalars_dir, 100)
     assert path.read_bytes() == b"0,1.0\n"
     assert len(warnings_of(capsys.readouterr().err)) == 1
 
@@ -76,13 +72,13 @@ def test_rows_past_the_checkpoint_are_cut_quietly(
     loss_path = write_metric(tmp_path, "train/loss", b"10,0.5\n90,0.25\n110,0.125\n")
     mode = 0o640
     os.chmod(loss_path, mode)
-    truncate_metrics(tmp_path, 100)
+    truncate_metrics(RunDir(tmp_path).scalars_dir, 100)
     assert eval_path.read_bytes() == b"0,1.5\n100,2.5\n"  # frames <= 100 kept
     assert loss_path.read_bytes() == b"10,0.5\n90,0.25\n"
     assert loss_path.stat().st_mode & 0o777 == mode
     assert capsys.readouterr().err == ""
     assert not list(tmp_path.rglob(f"*{TEMP_SUFFIX}"))
-    truncate_metrics(tmp_path, 0)
+    truncate_metrics(RunDir(tmp_path).scalars_dir, 0)
     assert eval_path.read_bytes() == b"0,1.5\n" and loss_path.read_bytes() == b""
 
 
@@ -92,10 +88,12 @@ def test_unchanged_files_are_not_touched(tmp_path: Path) -> None:
     for p in (path, empty):
         os.utime(p, ns=(1_000_000_000, 1_000_000_000))
     before = [(p.stat().st_ino, p.stat().st_mtime_ns) for p in (path, empty)]
-    truncate_metrics(tmp_path, 200)
+    truncate_metrics(RunDir(tmp_path).scalars_dir, 200)
     assert [(p.stat().st_ino, p.stat().st_mtime_ns) for p in (path, empty)] == before
     assert path.read_bytes() == ROWS
-    truncate_metrics(tmp_path / "no-metrics-here", 0)  # no metrics dir: nothing to do
+    truncate_metrics(
+        RunDir(tmp_path / "no-metrics-here").scalars_dir, 0
+    )  # no metrics dir: nothing to do
 
 
 def test_readers_skip_a_damaged_tail(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -106,10 +104,10 @@ def test_readers_skip_a_damaged_tail(tmp_path: Path, capsys: pytest.CaptureFixtu
     write_metric(runs[2], "eval/return_mean", b"\0" * 512)
     for run in runs[:2]:
         write_metric(run, "train/episode_return", b"5,1.0\n50,2.0\n\0\0")
-    frames, values = read_metric(runs[0], "eval/return_mean")
+    frames, values = RunDir(runs[0]).metric("eval/return_mean")
     assert frames.tolist() == [0, 100, 200] and values.tolist() == [1.5, 2.5, 3.5]
-    assert read_metric(runs[1], "eval/return_mean")[0].tolist() == [0, 100, 200]
-    assert read_metric(runs[2], "eval/return_mean")[0].size == 0
+    assert RunDir(runs[1]).metric("eval/return_mean")[0].tolist() == [0, 100, 200]
+    assert RunDir(runs[2]).metric("eval/return_mean")[0].size == 0
     assert find_runs([tmp_path / "sweep"]) == runs[:2]  # nothing readable in the third
     assert plot_run(runs[0]).is_file()
     plot_main([str(tmp_path / "sweep"), f"out={tmp_path / 'sweep.png'}"])
@@ -126,7 +124,8 @@ def test_parse_rows() -> None:
 
 
 TRUNCATE = (
-    "import sys; from rlpipe.metrics import truncate_metrics; truncate_metrics(sys.argv[1], 100)"
+    "import sys; from rlpipe.metrics import truncate_metrics; from rlpipe.rundir import RunDir; "
+    "truncate_metrics(RunDir(sys.argv[1]).scalars_dir, 100)"
 )
 
 
@@ -159,13 +158,13 @@ def test_killed_while_truncating_leaves_each_file_whole(tmp_path: Path, nth: int
     )
     assert proc.returncode == -signal.SIGKILL, proc.stderr
     assert len(list(tmp_path.rglob(f"*{TEMP_SUFFIX}"))) == 1  # killed with a copy not renamed
-    contents = {name: metric_path(tmp_path, name).read_bytes() for name in old}
+    contents = {name: RunDir(tmp_path).metric_path(name).read_bytes() for name in old}
     changed = [name for name in old if contents[name] != old[name]]
     assert len(changed) == nth - 1, contents  # files are done in order, one per fault point
     for name, data in contents.items():
         assert data in (old[name], new[name]), (name, data)
-    truncate_metrics(tmp_path, 100)  # the resume after the crash
-    assert {name: metric_path(tmp_path, name).read_bytes() for name in old} == new
+    truncate_metrics(RunDir(tmp_path).scalars_dir, 100)  # the resume after the crash
+    assert {name: RunDir(tmp_path).metric_path(name).read_bytes() for name in old} == new
     assert not list(tmp_path.rglob(f"*{TEMP_SUFFIX}"))  # the killed run's copy is gone
 
 
@@ -181,7 +180,7 @@ def test_check_writable_writes_nothing(tmp_path: Path) -> None:
 
 
 def test_seeds_and_resumes_group_together_other_overrides_apart(tmp_path):
-    from rlpipe.metrics import group_runs
+    from rlpipe.runs import group_runs
 
     made = {
         "a0": ["seed=0", "algo.lr=0.1"],

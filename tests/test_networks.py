@@ -146,11 +146,11 @@ def test_mbrl_takes_a_world_model_as_object_or_spec():
 
 
 def test_a_runner_run_with_a_network_object_records_its_class(tmp_path):
-    from rlpipe import Runner, load_run
+    from rlpipe import RunDir, Runner, load_run
 
     algo = DQN(CARTPOLE, SMALL_DQN, network=Tagged(4, 2))
     eval_env = make_env(EnvConfig(id="CartPole-v1"), seed=1)
-    Runner(algo, eval_env, tmp_path, total_frames=16, eval_episodes=1, progress=False).run()
+    Runner(algo, eval_env, RunDir(tmp_path), total_frames=16, eval_episodes=1, progress=False).run()
     algo.close()
     eval_env.close()
     with pytest.raises(RlpipeError, match=f"network was a Python object \\({__name__}.Tagged\\)"):

@@ -200,7 +200,7 @@ def test_a_figure_a_reader_understands(
 
     from rlpipe import EnvConfig
     from rlpipe.figures import _title, groups_figure
-    from rlpipe.metrics import Group, group_runs
+    from rlpipe.runs import Group, group_runs
 
     car = [tmp_path / f"car{seed}" for seed in (0, 1)]
     for seed, run_dir in enumerate(car):

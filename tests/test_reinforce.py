@@ -22,6 +22,7 @@ from rlpipe.envs import make_env
 from rlpipe.episodes import evaluate
 from rlpipe.errors import RlpipeError
 from rlpipe.models import make_policy, mlp
+from rlpipe.rundir import RunDir
 from rlpipe.runner import Runner
 
 CONTINUOUS = EnvConfig(id="rlpipe/CartPoleContinuous-v0", num_envs=4, max_episode_steps=50)
@@ -226,7 +227,7 @@ def test_learns_discrete_cartpole_and_resumes_exactly(tmp_path):
     eval_env = make_env(env_cfg, seed=1)
     before = evaluate(algo.policy, eval_env, 8).mean
     result = Runner(
-        algo, eval_env, tmp_path, total_frames=8_000, eval_every=0, progress=False
+        algo, eval_env, RunDir(tmp_path), total_frames=8_000, eval_every=0, progress=False
     ).run()
     assert result.eval_mean > before + 50
     restored = Reinforce(partial(make_env, env_cfg, seed=0), cfg)

@@ -19,12 +19,12 @@ from conftest import run_module
 from tensordict.nn import TensorDictModule
 from torch import nn
 
-from rlpipe.algos import ARSConfig, DQNConfig, ReinforceConfig
-from rlpipe.checkpoint import checkpoint_path, list_checkpoints, load_checkpoint
+from rlpipe.algos import Algorithm, ARSConfig, DQNConfig, ReinforceConfig
+from rlpipe.checkpoint import load_checkpoint
 from rlpipe.config import Config, EnvConfig, LoggerConfig
 from rlpipe.envs import make_env
-from rlpipe.pipeline import train
-from rlpipe.rundir import load_run
+from rlpipe.pipeline import load_run, train
+from rlpipe.rundir import RunDir
 from rlpipe.runner import Diverged, Runner
 
 # DQN on CartPole: 2 envs, 20 frames per iteration, a checkpoint every 200 frames
@@ -59,7 +59,7 @@ def _popen(tmp_path: Path, *args: str) -> subprocess.Popen:
 
 def _wait_for_checkpoint(proc: subprocess.Popen, run_dir: Path, timeout: float = 240) -> None:
     deadline = time.monotonic() + timeout
-    while not list_checkpoints(run_dir / "checkpoints"):
+    while not RunDir(run_dir).checkpoints():
         assert proc.poll() is None, f"the run ended early: {proc.stderr.read()}"
         assert time.monotonic() < deadline, "no checkpoint appeared"
         time.sleep(0.05)
@@ -74,7 +74,7 @@ def test_sigkill_at_a_random_moment_then_resume_reaches_the_budget(tmp_path):
     proc.kill()
     proc.wait()
     assert proc.returncode == -signal.SIGKILL, "the run finished before it could be killed"
-    killed_at = load_checkpoint(list_checkpoints(run_dir / "checkpoints")[-1])["frames"]
+    killed_at = load_checkpoint(RunDir(run_dir).checkpoints()[-1])["frames"]
     assert 0 < killed_at < 6000
 
     result = run_module("rlpipe", *args, f"resume={run_dir}", cwd=tmp_path)
@@ -98,14 +98,14 @@ def test_sigint_writes_a_checkpoint_and_says_how_to_resume(tmp_path):
     last = stderr.strip().splitlines()[-1]
     assert "SIGINT" in last and f"resume={run_dir}" in last, stderr
     assert "Traceback" not in stderr
-    stopped_at = load_checkpoint(list_checkpoints(run_dir / "checkpoints")[-1])["frames"]
-    assert str(list_checkpoints(run_dir / "checkpoints")[-1]) in last
+    stopped_at = load_checkpoint(RunDir(run_dir).checkpoints()[-1])["frames"]
+    assert str(RunDir(run_dir).checkpoints()[-1]) in last
     budget = stopped_at + 100
     result = run_module(
         "rlpipe", *DQN_ARGS, f"total_frames={budget}", f"resume={run_dir}", cwd=tmp_path
     )
     assert result.returncode == 0, result.stderr
-    assert load_checkpoint(list_checkpoints(run_dir / "checkpoints")[-1])["frames"] >= budget
+    assert load_checkpoint(RunDir(run_dir).checkpoints()[-1])["frames"] >= budget
 
 
 def _tiny_dqn(run_dir: Path, total_frames: int, **overrides) -> Config:
@@ -127,11 +127,11 @@ def _tiny_dqn(run_dir: Path, total_frames: int, **overrides) -> Config:
 def test_damaged_newest_checkpoint_is_skipped_with_a_warning(tmp_path, capsys):
     run_dir = tmp_path / "run"
     _tiny_dqn(run_dir, 400)
-    newest = list_checkpoints(run_dir / "checkpoints")[-1]
+    newest = RunDir(run_dir).checkpoints()[-1]
     newest.write_bytes(newest.read_bytes()[:100])  # truncated, as by a crash mid-copy
     _tiny_dqn(run_dir, 500, resume=str(run_dir))
     assert f"checkpoint {newest} is damaged" in capsys.readouterr().err
-    assert load_checkpoint(list_checkpoints(run_dir / "checkpoints")[-1])["frames"] == 500
+    assert load_checkpoint(RunDir(run_dir).checkpoints()[-1])["frames"] == 500
     # resumed from 300: the rows logged after it were dropped, then written again
     assert _steps(run_dir, "eval/return_mean") == [500]
     episodes = _steps(run_dir, "train/episode_return")
@@ -180,16 +180,16 @@ def test_bad_resume_is_one_line_and_touches_nothing(tmp_path, finished_run, case
     elif case == "other_env":
         overrides.append("env=mountaincar")
     elif case == "all_damaged":
-        for path in list_checkpoints(run_dir / "checkpoints"):
+        for path in RunDir(run_dir).checkpoints():
             path.write_bytes(b"not a checkpoint")
     elif case == "hostile":
-        torch.save({"algo": _Evil()}, checkpoint_path(run_dir / "checkpoints", 300))
+        torch.save({"algo": _Evil()}, run_dir / "checkpoints" / f"ckpt_{300:012d}.pt")
     elif case == "no_checkpoint":
-        for path in list_checkpoints(run_dir / "checkpoints"):
+        for path in RunDir(run_dir).checkpoints():
             path.unlink()
     elif case == "not_a_run":
         overrides[-1] = f"resume={tmp_path}"
-    # Hydra's job log (__main__.log) may be created empty, the lock file holds the last PID
+    # Hydra's job log (rlpipe.log) may be created empty, the lock file holds the last PID
     before = {p: p.read_bytes() for p in run_dir.rglob("*") if p.is_file() and p.name != ".lock"}
     result = run_module("rlpipe", *overrides, cwd=tmp_path)
     assert result.returncode == 2, result.stderr
@@ -198,12 +198,12 @@ def test_bad_resume_is_one_line_and_touches_nothing(tmp_path, finished_run, case
     assert message.format(tmp=tmp_path) in lines[0]
     assert "pwned" not in result.stdout
     after = {p: p.read_bytes() for p in run_dir.rglob("*") if p.is_file()}
-    assert {p: v for p, v in after.items() if p.name not in ("__main__.log", ".lock")} == before
+    assert {p: v for p, v in after.items() if p.name not in ("rlpipe.log", ".lock")} == before
 
 
 def test_evaluate_on_a_run_without_checkpoint_is_one_line(tmp_path, finished_run):
     run_dir = _copy_run(finished_run, tmp_path / "run")
-    for path in list_checkpoints(run_dir / "checkpoints"):
+    for path in RunDir(run_dir).checkpoints():
         path.unlink()
     result = run_module("rlpipe.evaluate", f"run_dir={run_dir}", "episodes=2", cwd=tmp_path)
     assert result.returncode == 2, result.stderr
@@ -212,15 +212,14 @@ def test_evaluate_on_a_run_without_checkpoint_is_one_line(tmp_path, finished_run
     assert f"{run_dir} has no checkpoint yet" in lines[0]
 
 
-class _Drifting:
+class _Drifting(Algorithm):
     """A stand-in algorithm whose loss turns NaN at its third iteration."""
 
     finite_keys = ("train/loss",)  # what the runner checks for divergence
 
     def __init__(self) -> None:
+        super().__init__()
         self.policy = TensorDictModule(nn.Linear(4, 2), ["observation"], ["action"])
-        self.frames = self.iterations = 0
-        self.budget = None
 
     def train_step(self) -> dict[str, float]:
         self.frames += 100
@@ -241,7 +240,7 @@ def test_nan_loss_stops_the_run_and_keeps_the_last_good_checkpoint(tmp_path):
     runner = Runner(
         _Drifting(),
         make_env(EnvConfig(), seed=0),
-        tmp_path,
+        RunDir(tmp_path),
         total_frames=1000,
         eval_every=0,
         checkpoint_every=100,
@@ -249,7 +248,7 @@ def test_nan_loss_stops_the_run_and_keeps_the_last_good_checkpoint(tmp_path):
     )
     with pytest.raises(Diverged, match="diverged at 300 frames: train/loss is not finite"):
         runner.run()
-    assert [p.name for p in list_checkpoints(tmp_path / "checkpoints")] == [
+    assert [p.name for p in RunDir(tmp_path).checkpoints()] == [
         "ckpt_000000000100.pt",
         "ckpt_000000000200.pt",
     ]

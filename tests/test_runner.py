@@ -12,11 +12,12 @@ from tensordict.nn import TensorDictModule
 from torch import nn
 
 from rlpipe.algos import DQN, DQNConfig
-from rlpipe.checkpoint import list_checkpoints, load_checkpoint
+from rlpipe.checkpoint import load_checkpoint
 from rlpipe.config import Config, EnvConfig, LoggerConfig
 from rlpipe.envs import make_env
 from rlpipe.episodes import evaluate
 from rlpipe.loggers import make_logger
+from rlpipe.rundir import RunDir
 from rlpipe.runner import Runner
 
 
@@ -45,7 +46,7 @@ def test_runner_logs_checkpoints_and_summarises(tmp_path):
     runner = Runner(
         algo,
         make_env(EnvConfig(), num_envs=2, seed=1),
-        tmp_path,
+        RunDir(tmp_path),
         total_frames=400,
         eval_every=100,
         eval_episodes=2,
@@ -58,7 +59,7 @@ def test_runner_logs_checkpoints_and_summarises(tmp_path):
     result = runner.run()
     algo.close()
     assert result.frames == 400 and result.eval_episodes == 2
-    ckpts = list_checkpoints(tmp_path / "checkpoints")
+    ckpts = RunDir(tmp_path).checkpoints()
     assert [p.name for p in ckpts] == ["ckpt_000000000300.pt", "ckpt_000000000400.pt"]
     assert load_checkpoint(ckpts[-1])["frames"] == 400
     scalars = tmp_path / "metrics" / "scalars"
@@ -76,9 +77,8 @@ def test_a_runner_run_is_a_run_for_evaluate_plot_and_resume(tmp_path):
     ``train`` continues it from its checkpoint."""
     from conftest import run_module
 
-    from rlpipe.metrics import find_runs, group_runs, read_metric
     from rlpipe.pipeline import train
-    from rlpipe.rundir import load_config
+    from rlpipe.runs import find_runs, group_runs
 
     torch.manual_seed(3)
     env_cfg = EnvConfig(id="CartPole-v1", num_envs=2)
@@ -89,7 +89,7 @@ def test_a_runner_run_is_a_run_for_evaluate_plot_and_resume(tmp_path):
     Runner(
         algo,
         eval_env,
-        run_dir,
+        RunDir(run_dir),
         total_frames=64,
         eval_every=32,
         eval_episodes=2,
@@ -98,7 +98,7 @@ def test_a_runner_run_is_a_run_for_evaluate_plot_and_resume(tmp_path):
     ).run()
     algo.close()
     eval_env.close()
-    cfg = load_config(run_dir)
+    cfg = RunDir(run_dir).read_config()
     assert (cfg.env, cfg.seed, cfg.total_frames, cfg.eval_every) == (env_cfg, 3, 64, 32)
     assert cfg.algo == DQNConfig(
         frames_per_batch=16,
@@ -107,17 +107,17 @@ def test_a_runner_run_is_a_run_for_evaluate_plot_and_resume(tmp_path):
         eval_episodes=2,
         checkpoint_every=25_000,
     )
-    assert load_checkpoint(list_checkpoints(run_dir / "checkpoints")[-1])["config"]["seed"] == 3
+    assert load_checkpoint(RunDir(run_dir).checkpoints()[-1])["config"]["seed"] == 3
     done = run_module("rlpipe.evaluate", f"run_dir={run_dir}", "episodes=2", cwd=tmp_path)
     assert done.returncode == 0 and "on CartPole-v1: return" in done.stdout, done.stderr
     assert [g.runs for g in group_runs(find_runs([tmp_path]))] == [[run_dir]]
     result = train(replace(cfg, total_frames=96, progress=False), run_dir)  # resumes at 64
     assert result.frames == 96
-    assert read_metric(run_dir, "eval/return_mean")[0].tolist() == [32, 64, 96]
+    assert RunDir(run_dir).metric("eval/return_mean")[0].tolist() == [32, 64, 96]
     # every eval row has its times, and no frame count has two time/elapsed rows
-    elapsed = read_metric(run_dir, "time/elapsed")[0].tolist()
+    elapsed = RunDir(run_dir).metric("time/elapsed")[0].tolist()
     assert len(set(elapsed)) == len(elapsed) and {32, 64, 96} <= set(elapsed)
-    assert read_metric(run_dir, "time/train_seconds")[0].tolist() == [32, 64, 96]
+    assert RunDir(run_dir).metric("time/train_seconds")[0].tolist() == [32, 64, 96]
 
 
 def test_a_runner_without_a_known_config_writes_none(tmp_path):
@@ -125,7 +125,7 @@ def test_a_runner_without_a_known_config_writes_none(tmp_path):
     env_cfg = EnvConfig(id="CartPole-v1")
     algo = DQN(lambda: make_env(env_cfg), DQNConfig(frames_per_batch=16))  # not a partial
     eval_env = make_env(env_cfg, seed=1)
-    Runner(algo, eval_env, tmp_path, total_frames=16, eval_episodes=1, progress=False).run()
+    Runner(algo, eval_env, RunDir(tmp_path), total_frames=16, eval_episodes=1, progress=False).run()
     algo.close()
     eval_env.close()
     assert (tmp_path / "summary.json").is_file() and not (tmp_path / "config.yaml").exists()
@@ -153,10 +153,7 @@ def test_the_bar_ends_where_the_binding_budget_ends():
 def test_the_best_evaluation_keeps_its_checkpoint(tmp_path):
     """checkpoints/best_<frames>.pt holds the best evaluation's state (one file, beside the
     newest checkpoints); checkpoint=best loads it; a resume drops a best from the redone part."""
-    from rlpipe.checkpoint import list_best
-    from rlpipe.metrics import read_metric
-    from rlpipe.pipeline import train
-    from rlpipe.rundir import load_run, read_checkpoint
+    from rlpipe.pipeline import load_run, train
 
     cfg = Config(
         env=EnvConfig(num_envs=2),
@@ -168,10 +165,11 @@ def test_the_best_evaluation_keeps_its_checkpoint(tmp_path):
         progress=False,
     )
     train(cfg, tmp_path)
-    frames, means = read_metric(tmp_path, "eval/return_mean")
+    frames, means = RunDir(tmp_path).metric("eval/return_mean")
     best = int(frames[int(means.argmax())])  # the first of the best
-    assert [p.name for p in list_best(tmp_path / "checkpoints")] == [f"best_{best:012d}.pt"]
-    path, state = read_checkpoint(tmp_path, "best")
+    assert [p.name for p in RunDir(tmp_path).bests()] == [f"best_{best:012d}.pt"]
+    best_checkpoint = RunDir(tmp_path).read_checkpoint("best")
+    path, state = best_checkpoint.path, best_checkpoint.state
     assert state["frames"] == best and state["runner"]["best_eval"] == pytest.approx(means.max())
     run = load_run(tmp_path, "best")
     assert run.checkpoint == path and run.algo.frames == best
@@ -179,4 +177,4 @@ def test_the_best_evaluation_keeps_its_checkpoint(tmp_path):
     # a best from past the checkpoint a resume starts at belongs to the part redone: dropped
     (tmp_path / "checkpoints" / f"best_{10**6:012d}.pt").write_bytes(path.read_bytes())
     train(replace(cfg, total_frames=576), tmp_path)
-    assert all(int(p.stem[5:]) <= 576 for p in list_best(tmp_path / "checkpoints"))
+    assert all(int(p.stem[5:]) <= 576 for p in RunDir(tmp_path).bests())

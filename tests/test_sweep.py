@@ -12,7 +12,8 @@ import yaml
 from conftest import TINY, run_module
 from hydra.errors import ConfigCompositionException, MissingConfigException
 
-from rlpipe.cli import check_launcher, format_error
+from rlpipe.cli import format_error
+from rlpipe.command import check_launcher
 from rlpipe.errors import RlpipeError
 from rlpipe.sweep import write_summary
 

@@ -1,51 +1,43 @@
-"""Algorithm registry: config class and builder for each ``algo`` option."""
+"""The algorithms: the registry (``ALGORITHMS``, :func:`make_algorithm`) and each algorithm's
+class and config, imported on first use so that ``import rlpipe.algos`` loads no torch."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from typing import Any
+import importlib
+from typing import TYPE_CHECKING, Any
 
-import torch
-from torch import nn
+from rlpipe.registry import ALGORITHMS
 
-from rlpipe.algos.ars import ARS, ARSConfig
-from rlpipe.algos.base import Algorithm, Metrics
-from rlpipe.algos.dqn import DQN, DQNConfig
-from rlpipe.algos.mbrl import MBRL, MBRLConfig
-from rlpipe.algos.ppo import PPO, PPOConfig
-from rlpipe.algos.reinforce import Reinforce, ReinforceConfig
-from rlpipe.algos.sac import SAC, SACConfig
-from rlpipe.envs import EnvFactory
-from rlpipe.errors import check_choice
+if TYPE_CHECKING:
+    import torch
+    from torch import nn
 
-__all__ = [
-    "ALGORITHMS",
-    "ARS",
-    "ARSConfig",
-    "Algorithm",
-    "Metrics",
-    "DQN",
-    "DQNConfig",
-    "MBRL",
-    "MBRLConfig",
-    "PPO",
-    "PPOConfig",
-    "SAC",
-    "SACConfig",
-    "Reinforce",
-    "ReinforceConfig",
-    "make_algorithm",
-]
+    from rlpipe.algos.base import Algorithm
+    from rlpipe.envs import EnvFactory
 
-# name -> (config dataclass, builder(env_factory, cfg, device=...) -> Algorithm)
-ALGORITHMS: dict[str, tuple[type, Callable[..., Algorithm]]] = {
-    "dqn": (DQNConfig, DQN),
-    "reinforce": (ReinforceConfig, Reinforce),
-    "ars": (ARSConfig, ARS),
-    "mbrl": (MBRLConfig, MBRL),
-    "ppo": (PPOConfig, PPO),
-    "sac": (SACConfig, SAC),
+# public name -> the module that defines it (imported when the name is first used)
+_LAZY = {
+    "ARS": "rlpipe.algos.ars",
+    "MBRL": "rlpipe.algos.mbrl",
+    "DQN": "rlpipe.algos.dqn",
+    "PPO": "rlpipe.algos.ppo",
+    "Reinforce": "rlpipe.algos.reinforce",
+    "SAC": "rlpipe.algos.sac",
+    "Algorithm": "rlpipe.algos.base",
+    "Metrics": "rlpipe.algos.base",
+    **dict.fromkeys(
+        ("ARSConfig", "DQNConfig", "MBRLConfig", "PPOConfig", "ReinforceConfig", "SACConfig"),
+        "rlpipe.algos.configs",
+    ),
 }
+
+__all__ = ["ALGORITHMS", "make_algorithm", *_LAZY]
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def make_algorithm(
@@ -58,6 +50,5 @@ def make_algorithm(
     """Build the algorithm named by ``cfg.name`` on envs from ``env_factory``.
 
     ``network``: your module in place of the algorithm's default network."""
-    check_choice(cfg.name, "algo.name", ALGORITHMS)
     extra = {} if network is None else {"network": network}
-    return ALGORITHMS[cfg.name][1](env_factory, cfg, device=device, **extra)
+    return ALGORITHMS.builder(cfg.name)(env_factory, cfg, device=device, **extra)

@@ -1,11 +1,14 @@
-"""The small interface every algorithm exposes to the shared runner, and what they share."""
+"""The algorithm contract the shared runner drives (:class:`Algorithm`, every hook declared with
+its default), and what the algorithms built on one env share (:class:`EnvAlgorithm`)."""
 
 from __future__ import annotations
 
 import math
 from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import Any, ClassVar, Protocol, runtime_checkable
+from dataclasses import replace
+from functools import partial
+from typing import Any, ClassVar
 
 import torch
 from tensordict import TensorDictBase
@@ -14,8 +17,10 @@ from torch import nn
 from torchrl.collectors import Collector
 from torchrl.envs import EnvBase
 
-from rlpipe.envs import EnvFactory
-from rlpipe.models import mlp, user_network
+from rlpipe.config import RUN_KEYS, AlgoConfig, Config, EnvConfig
+from rlpipe.envs import EnvFactory, make_env
+from rlpipe.models import mlp, object_record, user_network
+from rlpipe.registry import config_class
 
 # Scalars are averaged over the runner's logging window; lists hold one value per event
 # (e.g. one return per finished training episode) and are logged row by row.
@@ -43,36 +48,107 @@ def batch_steps(env: EnvBase, frames: int) -> tuple[int, int]:
     return copies, math.ceil(frames / copies)
 
 
-@runtime_checkable
-class Algorithm(Protocol):
-    """What the runner needs: a greedy policy, a frame counter, one iteration, and state.
+class Algorithm:
+    """The base class of what the runner drives, with every hook the runner uses declared.
 
-    Builders are called as ``Algo(env_factory, cfg, device=device)``: ``env_factory()`` builds
-    the training env (a :data:`rlpipe.envs.EnvFactory`), which the algorithm owns and closes.
+    Subclass it, set :attr:`policy`, and implement :meth:`train_step`, :meth:`state_dict` and
+    :meth:`load_state_dict` (and :meth:`close` if it holds envs or workers).
+
+    Every other member the runner uses is declared here with its default: the counters
+    (:attr:`frames`, :attr:`iterations`), the algorithm's own :attr:`budget`, the metrics that
+    must stay finite, the advice a divergence error ends with, the frame limit the runner sets
+    (:meth:`limit_frames`), and a stop request (:meth:`request_stop`) that a long
+    :meth:`train_step` may poll (:attr:`stop_requested`) to end its iteration early in a
+    consistent state. Built as ``Algo(env_factory, cfg, device=..., network=...)``: the base
+    constructor keeps those and calls :meth:`build`, where a subclass builds its parts;
+    ``env_factory()`` builds the training env (a :data:`rlpipe.envs.EnvFactory`), which the
+    algorithm owns and closes.
     """
 
     policy: TensorDictModuleBase  # deterministic/greedy policy used by evaluation and video
-    frames: int  # environment frames consumed so far
-    iterations: int  # train_step calls so far
-    budget: int | None  # the algorithm's own budget in iterations (REINFORCE epochs, ARS
-    # iterations); None: none, the run's total_frames decides
-    finite_keys: ClassVar[tuple[str, ...]]  # metrics that must stay finite (else: diverged)
-    # optional: `divergence_hint` (str), the advice a divergence error ends with, and
-    # `should_stop` (a callable the runner sets: True once SIGINT/SIGTERM arrived), which a
-    # long train_step may poll to end its iteration early in a consistent state, and
-    # `frame_limit` (the runner sets its total_frames), where train_step stops collecting
+    frames: int = 0  # environment frames consumed so far
+    iterations: int = 0  # train_step calls so far
+    # the algorithm's own budget in iterations (REINFORCE epochs, ARS iterations); None: the
+    # run's total_frames decides
+    budget: int | None = None
+    finite_keys: ClassVar[tuple[str, ...]] = ()  # metrics that must stay finite (else: diverged)
+    divergence_hint: ClassVar[str] = "try a smaller algo.lr"  # what a divergence error ends with
+    frame_limit: int | None = None  # the run's total_frames: collect no further (limit_frames)
+    _stop = False  # request_stop's flag
+    # what it was built from (None for an algorithm built otherwise): run_config reads them
+    cfg: Any = None
+    env_factory: EnvFactory | None = None
+    user_network: nn.Module | None = None  # given in place of the default network
+
+    def __init__(
+        self,
+        env_factory: EnvFactory | None = None,
+        cfg: Any = None,
+        *,
+        device: str | torch.device = "cpu",
+        network: nn.Module | None = None,
+    ) -> None:
+        self.cfg, self.env_factory, self.user_network = cfg, env_factory, network
+        self.device = torch.device(device)
+        self.build()
+
+    def build(self) -> None:
+        """Build what the algorithm needs from :attr:`env_factory` and :attr:`cfg` (called by
+        ``__init__``, after the fields above are set; nothing by default)."""
 
     def train_step(self) -> Metrics:
         """Run one iteration (collect and update); advance ``frames``; return metrics."""
-        ...
+        raise NotImplementedError
 
-    def state_dict(self) -> dict[str, Any]: ...
+    def state_dict(self) -> dict[str, Any]:
+        """Everything a resume needs (tensors and plain containers)."""
+        raise NotImplementedError
 
-    def load_state_dict(self, state: dict[str, Any]) -> None: ...
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        raise NotImplementedError
 
     def close(self) -> None:
         """Release the env the algorithm built and any workers or collectors it started."""
-        ...
+
+    def limit_frames(self, total_frames: int | None) -> None:
+        """The runner's ``total_frames``: an iteration collects no frames past it."""
+        self.frame_limit = total_frames
+
+    def request_stop(self, stop: bool = True) -> None:
+        """Ask the current iteration to end early (SIGINT/SIGTERM); ``False`` clears it."""
+        self._stop = stop
+
+    @property
+    def stop_requested(self) -> bool:
+        """Whether a stop was requested: a long :meth:`train_step` polls it to end early."""
+        return self._stop
+
+    def run_config(self, **run: Any) -> Config | None:
+        """The :class:`~rlpipe.config.Config` of a run of this algorithm, or None.
+
+        Known when :attr:`cfg` is a registered algorithm config and :attr:`env_factory` was made
+        as ``functools.partial(make_env, EnvConfig(...), seed=s)`` (``seed`` left out: torch's
+        initial seed, what :func:`~rlpipe.seed_everything` set). ``run``: the runner's
+        :data:`~rlpipe.config.RUN_KEYS`, ``keep_checkpoints`` and ``progress``.
+        """
+        factory = self.env_factory
+        known = isinstance(self.cfg, AlgoConfig) and config_class(self.cfg.name) is type(self.cfg)
+        by_make_env = isinstance(factory, partial) and factory.func is make_env
+        if not (known and by_make_env and factory.args and isinstance(factory.args[0], EnvConfig)):
+            return None
+        env, options = factory.args[0], factory.keywords
+        if options.get("num_envs"):
+            env = replace(env, num_envs=options["num_envs"])
+        seed = options.get("seed")
+        given = self.user_network
+        network = {} if given is None else {"network": object_record(given)}
+        return Config(
+            env=env,
+            algo=replace(self.cfg, **{key: run[key] for key in RUN_KEYS}, **network),
+            seed=torch.initial_seed() % 2**32 if seed is None else seed,
+            device=str(self.device),
+            **run,
+        )
 
 
 def episode_metrics(batch: TensorDictBase) -> Metrics:
@@ -111,9 +187,9 @@ class BatchCut:
         return self.steps <= 0
 
 
-class EnvAlgorithm:
-    """What DQN, REINFORCE and MBRL share: built on one env from the factory (closed again if
-    building fails), frame and iteration counters, and a state dict over named attributes.
+class EnvAlgorithm(Algorithm):
+    """What DQN, REINFORCE, MBRL, PPO and SAC share: built on one env from the factory (closed
+    again if building fails), and a state dict over named attributes.
 
     ``network`` (or ``cfg.network``) replaces the algorithm's default network (see
     :meth:`network`). Subclasses implement ``_build(env)`` (``self.cfg`` and ``self.device`` are
@@ -124,30 +200,11 @@ class EnvAlgorithm:
 
     finite_keys: ClassVar[tuple[str, ...]] = (LOSS,)
     state_attrs: ClassVar[tuple[str, ...]] = ()
-    budget: int | None = None  # frames only: the run's total_frames
     activation: ClassVar[type[nn.Module]] = nn.ReLU  # of the default MLPs
-    frame_limit: int | None = None  # the runner sets its total_frames: collect no further
-    divergence_hint = "try a smaller algo.lr"
 
-    @staticmethod
-    def should_stop() -> bool:
-        """Whether a signal asks the current iteration to end early (the runner replaces it)."""
-        return False
-
-    def __init__(
-        self,
-        env_factory: EnvFactory,
-        cfg: Any,
-        *,
-        device: str | torch.device = "cpu",
-        network: nn.Module | None = None,
-    ):
-        self.cfg = cfg
-        self.device = torch.device(device)
-        self.frames = self.iterations = 0
-        self._network = network  # the user's, in place of the default (or cfg.network)
-        self.env_factory = env_factory
-        with closing_on_error(env_factory()) as env:
+    def build(self) -> None:
+        """One env from the factory (closed again if building fails), then ``_build(env)``."""
+        with closing_on_error(self.env_factory()) as env:
             self._build(env)
 
     def _build(self, env: EnvBase) -> None:
@@ -157,7 +214,7 @@ class EnvAlgorithm:
         """The user's network (``network=`` or ``cfg.network``, checked to map ``in_features``
         to ``out_features``), else the default: an MLP with ``cfg.hidden_sizes``."""
         given = user_network(
-            self._network,
+            self.user_network,
             self.cfg.network,
             in_features=in_features,
             out_features=out_features,

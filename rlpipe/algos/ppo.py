@@ -4,7 +4,6 @@ batched env, GAE advantages and ClipPPOLoss over minibatch epochs."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDictBase
@@ -14,47 +13,10 @@ from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
 from rlpipe.algos.base import LOSS, EnvAlgorithm, Metrics, episode_metrics
-from rlpipe.config import AlgoConfig, checked
+from rlpipe.algos.configs import PPOConfig
 from rlpipe.envs import observation_size
-from rlpipe.errors import check
 from rlpipe.models import make_policy, mlp
 from rlpipe.normalizer import Normalizer
-
-
-@dataclass
-class PPOConfig(AlgoConfig):
-    """PPO hyper-parameters; the defaults are SB3's."""
-
-    name: str = "ppo"
-    total_frames: int | None = 100_000  # PPO has no budget of its own: the run's length
-    eval_every: int = 10_000
-    hidden_sizes: list[int] = checked([64, 64], "sizes")  # actor's and critic's (tanh MLPs)
-    lr: float = checked(3e-4, "positive")
-    anneal_lr: bool = False  # linearly to 0 over algo.total_frames
-    anneal_clip: bool = False  # clip_epsilon, likewise (the RL Zoo's lin_0.2)
-    frames_per_batch: int = checked(2048, "at_least_one")  # one rollout (across all env copies)
-    epochs: int = checked(10, "at_least_one")  # passes over each rollout
-    minibatch_size: int = checked(64, "at_least_one")
-    gamma: float = checked(0.99, "discount")
-    gae_lambda: float = checked(0.95, "discount")
-    clip_epsilon: float = 0.2
-    entropy_coef: float = checked(0.0, "non_negative")
-    critic_coef: float = checked(0.5, "positive")
-    max_grad_norm: float = checked(0.5, "positive")
-    normalize_observations: bool = False  # a running mean/std in front of actor and critic
-    ortho_init: bool = True  # SB3's initialisation of the default networks (see PPO)
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        check(
-            self.clip_epsilon > 0,
-            f"algo.clip_epsilon must be > 0 (the ratio's clip range), got {self.clip_epsilon}",
-        )
-        check(
-            self.minibatch_size <= self.frames_per_batch,
-            f"algo.minibatch_size ({self.minibatch_size}) must be <= algo.frames_per_batch "
-            f"({self.frames_per_batch}), the frames of one rollout",
-        )
 
 
 def orthogonal_init(net: torch.nn.Module, last_gain: float) -> None:
@@ -124,7 +86,7 @@ class PPO(EnvAlgorithm):
             net = mlp(in_features, out_features, self.cfg.hidden_sizes, self.activation)
         else:
             net = self.network(in_features, out_features, outputs)
-        default = critic or (self._network is None and not self.cfg.network)
+        default = critic or (self.user_network is None and not self.cfg.network)
         if self.cfg.ortho_init and default:
             orthogonal_init(net, last_gain=1.0 if critic else 0.01)
         return torch.nn.Sequential(self.normalizer, net)

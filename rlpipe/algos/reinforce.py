@@ -4,8 +4,6 @@ optionally, a learned state-value baseline whose targets TorchRL's TD(1) estimat
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import (
@@ -16,36 +14,12 @@ from torchrl.objectives.value import TD1Estimator
 from torchrl.objectives.value.functional import reward2go
 
 from rlpipe.algos.base import LOSS, EnvAlgorithm, Metrics, episode_metrics
-from rlpipe.config import AlgoConfig, checked
+from rlpipe.algos.configs import ReinforceConfig
 from rlpipe.envs import observation_size
 from rlpipe.episodes import episode_quotas
 from rlpipe.models import TensorModule, make_policy, mlp
 
 _EPS = torch.finfo(torch.float32).eps
-
-
-BASELINES = ("none", "value")
-
-
-@dataclass
-class ReinforceConfig(AlgoConfig):
-    """REINFORCE hyper-parameters; the defaults are the REINFORCE/ARS notebook's."""
-
-    name: str = "reinforce"
-    eval_every: int = 5_000  # about one evaluation per epoch on the continuous CartPole
-    eval_episodes: int = 20  # the notebook's test episodes
-    epochs: int = checked(20, "at_least_one")  # the run's length, unless total_frames caps it
-    hidden_sizes: list[int] = checked([], "sizes")  # []: a linear policy
-    episodes_per_epoch: int = checked(100, "at_least_one")  # whole episodes per train_step
-    updates_per_epoch: int = checked(50, "at_least_one")  # Adam steps, each on a random minibatch
-    batch_size: int = checked(128, "at_least_one")
-    gamma: float = checked(0.99, "discount")
-    lr: float = checked(1e-3, "positive")
-    weight_decay: float = checked(1e-4, "non_negative")
-    # none: the notebook's weights; value: returns minus a learned V(s)
-    baseline: str = checked("none", choices=BASELINES)
-    value_hidden_sizes: list[int] = checked([64], "sizes")  # V(s)'s network
-    value_lr: float = checked(1e-2, "positive")  # V(s)'s Adam learning rate (same weight decay)
 
 
 def normalized_returns(batch: TensorDictBase, gamma: float) -> torch.Tensor:

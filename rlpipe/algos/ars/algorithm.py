@@ -3,7 +3,6 @@ running observation normaliser, evolved by :class:`rlpipe.algos.ars.ARSSearch`."
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from functools import partial
 from typing import Any
 
@@ -13,60 +12,21 @@ from torch import nn
 from torchrl.data import Bounded, Categorical
 from torchrl.envs import EnvBase
 
-from rlpipe.algos.ars.search import SEARCH_PARAMS, ARSSearch, check_search_params
-from rlpipe.algos.base import Metrics
-from rlpipe.config import AlgoConfig, checked
-from rlpipe.envs import EnvFactory, is_discrete, num_actions, observation_size
+from rlpipe.algos.ars.search import ARSSearch
+from rlpipe.algos.base import Algorithm, Metrics
+from rlpipe.algos.configs import SEARCH_PARAMS, ARSConfig, RayConfig
+from rlpipe.envs import is_discrete, num_actions, observation_size
 from rlpipe.errors import RlpipeError
 from rlpipe.models import ArgmaxAction, ClampAction, mlp, user_network
 from rlpipe.normalizer import Normalizer
 
 __all__ = ["ARS", "ARSConfig", "RayConfig", "make_ars_policy"]
 
-POLICIES = ("linear", "mlp")
 # the search's timing figures, which differ between identical runs: logged under time/
 TIMINGS = ("steps_per_second", "rollout_cpu_seconds")
 
 
-@dataclass
-class RayConfig:
-    """Where ``algo.backend=ray`` runs its rollout actors."""
-
-    address: str | None = None  # null: start Ray on this machine; host:port or auto: a cluster
-    num_cpus: int | None = None  # CPUs of a Ray started here (null: all the machine's)
-
-
-@dataclass
-class ARSConfig(AlgoConfig):
-    """ARS hyper-parameters; the defaults are the workshop notebook's."""
-
-    name: str = "ars"
-    eval_every: int = 1_000_000  # frames between greedy evaluations (an iteration is 2N episodes)
-    checkpoint_every: int = 1_000_000
-    iterations: int = checked(1000, "at_least_one")  # the run's length, unless total_frames caps it
-    num_directions: int = 16  # N: directions sampled per iteration (2N rollouts)
-    num_best: int = 16  # b: directions kept for the update, by max(r+, r-)
-    step_size: float = 0.02  # α
-    noise: float = 0.03  # ν: perturbations are θ ± ν·δ
-    # cap on training rollouts (the env's own limit still applies)
-    episode_length: int = checked(2000, "at_least_one")
-    reward_clip: bool = True  # clip training rewards to [-1, 1], as the notebook
-    alive_bonus_offset: float = 0.0  # added to every training reward (RL Zoo: -0.1 for Bipedal)
-    normalize_observations: bool = True  # ARS V2: running mean/variance, frozen for evaluation
-    policy: str = checked("linear", choices=POLICIES)
-    hidden_sizes: list[int] = checked([32, 32], "sizes")  # policy=mlp only
-    workers: int = 0  # rollout workers; 0: one per CPU core (Ray: per CPU of the cluster)
-    backend: str = "local"  # local: this process or worker processes; ray: Ray actors
-    ray: RayConfig = field(default_factory=RayConfig)  # backend=ray only
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        check_search_params(self, "algo.")
-        if isinstance(self.ray, dict):  # rebuilt from a run's config.yaml
-            self.ray = RayConfig(**self.ray)
-
-
-class ARS:
+class ARS(Algorithm):
     """Augmented random search (ARS V2) as the runner's algorithm, on envs from ``env_factory``.
 
     ``env_factory`` is a :data:`rlpipe.envs.EnvFactory` over :func:`rlpipe.make_env`.
@@ -84,26 +44,18 @@ class ARS:
     LayerNorm MLP of ``examples/ars_layernorm.py``).
     """
 
-    finite_keys = ()  # the runner checks the policy's parameters
     divergence_hint = "try a smaller algo.step_size or algo.noise"  # the end of its error
 
-    def __init__(
-        self,
-        env_factory: EnvFactory,
-        cfg: ARSConfig,
-        *,
-        device: str | torch.device = "cpu",
-        network: nn.Module | None = None,
-    ):
-        self.cfg = cfg
+    cfg: ARSConfig
+
+    def build(self) -> None:
+        """The policy (from one env copy's specs) and the search; ARS runs on the CPU."""
+        cfg, env_factory = self.cfg, self.env_factory
         self.device = torch.device("cpu")
-        self.frames = 0
         self.budget = cfg.iterations
-        self.env_factory = env_factory
-        self._network = network  # the user's, in place of the default (or cfg.network)
         probe = env_factory(num_envs=1, vectorization="sync")
         try:
-            self.policy, normalizer = make_ars_policy(probe, cfg, network)
+            self.policy, normalizer = make_ars_policy(probe, cfg, self.user_network)
         finally:
             probe.close()
         seed = int(torch.randint(0, 2**31 - 1, ()))  # from the run's seeded torch generator

@@ -16,7 +16,6 @@ import signal
 import sys
 import time
 import weakref
-from dataclasses import dataclass
 from multiprocessing.connection import Connection, wait
 from typing import Any, Protocol
 
@@ -24,23 +23,20 @@ import cloudpickle
 import torch
 from tensordict.nn import TensorDictModuleBase
 
-from rlpipe.algos.ars.chunking import chunks_per_worker
+from rlpipe.algos.ars.pool import RAY_INSTALL, Pool, Shares, Units
 from rlpipe.algos.ars.rollout import RolloutResult, Rollouts
+from rlpipe.algos.configs import ARS_BACKENDS
 from rlpipe.envs import EnvFactory
 from rlpipe.errors import RlpipeError
 
 __all__ = ["BACKENDS", "RAY_INSTALL", "Backend", "Shares", "WorkerDied", "start_backend"]
 
-BACKENDS = ("local", "ray")
+BACKENDS = ARS_BACKENDS
 # iterations the workers finish faster than this are short enough for round trips to matter:
 # one in this process alone is timed too, and the faster per env step wins; the slower is timed
 # again once an iteration's env steps have grown or shrunk RETIME_FACTOR-fold since its timing
 SHORT_SECONDS = 0.1
 RETIME_FACTOR = 2.0
-RAY_INSTALL = 'pip install "rlpipe[ray]"'
-
-# what a backend's roll_out returns: (member indices, their result) pairs covering the population
-Shares = list[tuple[torch.Tensor, RolloutResult]]
 
 
 class Backend(Protocol):
@@ -69,7 +65,7 @@ def start_backend(
     per core); ``"ray"``: ``workers`` Ray actors (0: one per CPU of the cluster). Worker ``w``
     builds its envs with ``seed + w``; ``options`` are :func:`rollout`'s keyword arguments.
     """
-    units = _Units(policy, env_factory, seed, options)
+    units = Units(policy, env_factory, seed, options)
     if backend == "ray":
         from rlpipe.algos.ars.ray_actors import RayActors  # Ray is an extra: imported on use
 
@@ -78,20 +74,6 @@ def start_backend(
     if workers == 1:
         return _InProcess(Rollouts(*units.args(0, population)), population)
     return _Processes(units, population, workers)
-
-
-@dataclass
-class _Units:
-    """What each worker's :class:`Rollouts` is built from (worker ``w``'s envs: ``seed + w``)."""
-
-    policy: TensorDictModuleBase
-    env_factory: EnvFactory
-    seed: int
-    options: dict[str, Any]
-
-    def args(self, worker: int, num_envs: int) -> tuple[Any, ...]:
-        """``Rollouts``' arguments for ``worker``, with ``num_envs`` env copies."""
-        return self.policy, self.env_factory, num_envs, self.seed + worker, self.options
 
 
 class _InProcess:
@@ -105,73 +87,6 @@ class _InProcess:
 
     def close(self) -> None:
         self.rollouts.close()
-
-
-class _Pool:
-    """A rollout backend of workers that pull chunks of the population as they free up.
-
-    Episode lengths are heavy-tailed, so each worker takes small chunks (up to eight per worker
-    and iteration, as many as the policy's measured call cost allows:
-    :func:`rlpipe.algos.ars.chunking.chunks_per_worker`) rather than owning a fixed share; one
-    worker takes everything as one chunk.
-    A chunk carries its members' parameters and episode seeds, and the policy's state (the
-    normaliser changes every iteration) when it is the worker's first of the iteration, all as
-    NumPy arrays; only its :class:`RolloutResult` comes back. Subclasses fill
-    ``workers`` and say how a chunk is sent to a worker (:meth:`_submit`, returning a handle), how
-    to wait until some handles are done (:meth:`_wait`) and how to collect one (:meth:`_collect`).
-    """
-
-    def __init__(self, units: _Units, population: int, workers: int) -> None:
-        self.policy = units.policy
-        if workers > 1:
-            chunks = chunks_per_worker(
-                units.policy, units.env_factory, population, workers, units.seed
-            )
-            self.chunk_size = -(-population // (chunks * workers))
-        else:
-            self.chunk_size = population
-        self.chunks = list(torch.arange(population).split(self.chunk_size))
-        self.workers: list[Any] = []
-
-    def roll_out(self, flat: torch.Tensor, seeds: torch.Tensor) -> Shares:
-        state = {key: value.numpy() for key, value in self.policy.state_dict().items()}
-        flat_np = flat.numpy()
-        pending = list(range(len(self.chunks)))
-        results: list[Any] = [None] * len(self.chunks)
-        busy: dict[Any, tuple[int, Any]] = {}  # handle -> (chunk index, worker)
-        updated: set[int] = set()  # workers that have this iteration's policy state
-
-        def give(worker: Any) -> None:
-            if pending:
-                index = pending.pop(0)
-                members = self.chunks[index]
-                fresh = id(worker) not in updated
-                updated.add(id(worker))
-                handle = self._submit(
-                    worker,
-                    state if fresh else None,
-                    flat_np[members.numpy()],
-                    seeds[members].tolist(),
-                )
-                busy[handle] = index, worker
-
-        for worker in self.workers:
-            give(worker)
-        while busy:
-            for handle in self._wait(list(busy)):
-                index, worker = busy.pop(handle)
-                results[index] = self._collect(handle)
-                give(worker)
-        return list(zip(self.chunks, results))
-
-    def _submit(self, worker: Any, *message: Any) -> Any:
-        raise NotImplementedError
-
-    def _wait(self, handles: list[Any]) -> list[Any]:
-        raise NotImplementedError
-
-    def _collect(self, handle: Any) -> RolloutResult:
-        raise NotImplementedError
 
 
 class WorkerDied(RlpipeError):
@@ -193,7 +108,7 @@ PR_SET_PDEATHSIG = 1  # prctl(2): the signal a process gets when its parent dies
 CLOSE_SECONDS = 10.0  # how long close() lets the workers finish before it terminates them
 
 
-class _Processes(_Pool):
+class _Processes(Pool):
     """Worker processes on this machine, one pipe each.
 
     Workers never outlive this process, whatever ends it (SIGKILL included): each holds only
@@ -212,7 +127,7 @@ class _Processes(_Pool):
     way gives the same rollouts (episode seeds come with the members).
     """
 
-    def __init__(self, units: _Units, population: int, workers: int) -> None:
+    def __init__(self, units: Units, population: int, workers: int) -> None:
         super().__init__(units, population, workers)
         self._here: _InProcess | None = None  # this process's own env copies
         # "pool"/"here" -> (wall seconds, env steps) of its latest iteration

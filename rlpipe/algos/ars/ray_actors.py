@@ -5,14 +5,14 @@ from __future__ import annotations
 import socket
 from typing import Any
 
-from rlpipe.algos.ars.backends import RAY_INSTALL, _Pool, _Units
+from rlpipe.algos.ars.pool import RAY_INSTALL, Pool, Units
 from rlpipe.algos.ars.rollout import RolloutResult, Rollouts
 from rlpipe.errors import RlpipeError, check
 
 RAY_PORT = 6379  # the port of a Ray head's GCS when an address names none
 
 
-class RayActors(_Pool):
+class RayActors(Pool):
     """Ray actors of one CPU each, on this machine or anywhere in a Ray cluster.
 
     Each actor is a :class:`Rollouts` holding its own env copies; ``workers`` 0 starts one per
@@ -21,7 +21,7 @@ class RayActors(_Pool):
 
     def __init__(
         self,
-        units: _Units,
+        units: Units,
         population: int,
         workers: int,
         *,

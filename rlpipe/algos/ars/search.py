@@ -12,16 +12,13 @@ import torch
 from tensordict.nn import TensorDictModuleBase
 from torch.nn.utils import parameters_to_vector, vector_to_parameters
 
-from rlpipe.algos.ars.backends import BACKENDS, Backend, start_backend
+from rlpipe.algos.ars.backends import Backend, start_backend
+from rlpipe.algos.configs import check_search_params
 from rlpipe.envs import EnvFactory
-from rlpipe.errors import check, check_choice, check_fields
+from rlpipe.errors import check_fields
 from rlpipe.normalizer import Normalizer
 
-__all__ = ["SEARCH_PARAMS", "ARSSearch", "ars_update", "check_search_params"]
-
-# the parameters that ARSSearch takes and ARSConfig holds under the same names, checked by
-# check_search_params for both
-SEARCH_PARAMS = ("num_directions", "num_best", "step_size", "noise", "workers", "backend")
+__all__ = ["ARSSearch", "ars_update"]
 
 
 class ARSSearch:
@@ -245,22 +242,3 @@ def ars_update(
     sigma = torch.cat([plus, minus]).std(unbiased=False).clamp(min=1e-8)
     step = ((plus - minus).unsqueeze(-1) * deltas[top]).sum(0)
     return theta + step_size / (num_best * sigma) * step
-
-
-def check_search_params(params: Any, prefix: str) -> None:
-    """Value checks of the :data:`SEARCH_PARAMS` that ``params`` holds as attributes; errors
-    name the key as ``<prefix><name>`` (``"algo."`` for :class:`rlpipe.algos.ars.ARSConfig`,
-    ``""`` for :class:`ARSSearch`)."""
-    check_fields(
-        params,
-        prefix,
-        at_least_one=("num_directions",),
-        positive=("step_size", "noise"),
-        non_negative=("workers",),
-    )
-    check(
-        1 <= params.num_best <= params.num_directions,
-        f"{prefix}num_best ({params.num_best}) must be between 1 and {prefix}num_directions "
-        f"({params.num_directions})",
-    )
-    check_choice(params.backend, f"{prefix}backend", BACKENDS)

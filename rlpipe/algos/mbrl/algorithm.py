@@ -3,8 +3,6 @@ models, plan on them (PETS-style, deterministic ensemble). See :mod:`rlpipe.algo
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
@@ -14,59 +12,17 @@ from torchrl.envs import EnvBase, ExplorationType
 from torchrl.envs.utils import exploration_type
 
 from rlpipe.algos.base import EnvAlgorithm, Metrics, batch_steps, episode_metrics
+from rlpipe.algos.configs import MBRLConfig
 from rlpipe.algos.mbrl.planning import ActionCoder, Planner, WorldModel
-from rlpipe.config import AlgoConfig, checked
 from rlpipe.envs import is_discrete, num_actions, observation_size
 from rlpipe.errors import RlpipeError, check
 from rlpipe.models import instantiate, network_spec
 
-PLANNERS = ("cem", "random")
 MODEL_LOSS = "train/model_loss"  # the models' mean training loss over a fit
 _EVAL_SEED = 0  # the greedy policy's sampling noise: the same for every call
 # env steps per collector batch, at most (single env: ~16 planner calls, ~1 s on 2 busy cores);
-# train_step polls should_stop between two such sub-batches
+# train_step polls stop_requested between two such sub-batches
 _SUB_BATCH_STEPS = 16
-
-
-@dataclass
-class MBRLConfig(AlgoConfig):
-    """Model-based RL hyper-parameters; the defaults are a PETS-like recipe for Pendulum-v1."""
-
-    name: str = "mbrl"
-    total_frames: int | None = 15_000  # MBRL has no budget of its own: the run's length
-    eval_every: int = 2_000  # every greedy eval step plans (eval_episodes x episode length)
-    checkpoint_every: int = 5_000
-    # models
-    ensemble_size: int = checked(5, "at_least_one")  # dynamics MLPs, each on its own minibatches
-    hidden_sizes: list[int] = checked([64, 64], "sizes")
-    lr: float = checked(1e-3, "positive")
-    weight_decay: float = checked(1e-4, "non_negative")
-    batch_size: int = checked(256, "at_least_one")
-    fit_steps: int = checked(200, "at_least_one")  # Adam steps on the models after each batch
-    # transitions held out for the logged validation losses
-    validation_fraction: float = checked(0.1, "fraction")
-    buffer_size: int = checked(100_000, "at_least_one")
-    # loop
-    warmup_frames: int = checked(
-        400, "non_negative"
-    )  # uniformly random actions before the first fit
-    frames_per_batch: int = checked(200, "at_least_one")  # env frames collected between two fits
-    # planner
-    planner: str = checked("cem", choices=PLANNERS)  # cem | random (random shooting)
-    horizon: int = checked(15, "at_least_one")
-    num_candidates: int = checked(100, "at_least_one")
-    cem_iterations: int = checked(5, "at_least_one")  # CEM rounds (random shooting: 1)
-    elites: int = 10
-    gamma: float = checked(0.99, "discount")
-    init_std: float = checked(0.5, "positive")  # CEM's first std, in half action ranges
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        check(
-            1 <= self.elites <= self.num_candidates,
-            f"algo.elites must be in [1, algo.num_candidates={self.num_candidates}], "
-            f"got {self.elites}",
-        )
 
 
 def action_coder(env: EnvBase, device: torch.device) -> ActionCoder:
@@ -142,7 +98,7 @@ class MBRL(EnvAlgorithm):
     candidates × members) rows.
 
     The frames come in sub-batches of at most ``_SUB_BATCH_STEPS`` env steps, each stored (buffer,
-    normalisers, ``frames``) as it arrives, and :meth:`should_stop` is polled between two of them
+    normalisers, ``frames``) as it arrives, and :attr:`stop_requested` is polled between two of them
     and between two Adam steps: once it is True, ``train_step`` returns after the current
     sub-batch (skipping the fit) or Adam step, and a checkpoint taken then is a valid resume
     point. The next ``train_step`` completes the interrupted iteration (collects up to the next
@@ -200,8 +156,8 @@ class MBRL(EnvAlgorithm):
             hidden_sizes=self.cfg.hidden_sizes,
             members=self.cfg.ensemble_size,
         )
-        spec = network_spec(self._network, self.cfg.network)
-        model = instantiate(spec, "algo.network", **sizes) if spec else self._network
+        spec = network_spec(self.user_network, self.cfg.network)
+        model = instantiate(spec, "algo.network", **sizes) if spec else self.user_network
         if model is None:
             return WorldModel(**sizes)
         check(
@@ -213,12 +169,12 @@ class MBRL(EnvAlgorithm):
 
     def train_step(self) -> Metrics:
         """Collect the rest of the iteration's frames sub-batch by sub-batch, then fit; return
-        early, without fitting, once :meth:`should_stop` is True (see the class docstring)."""
+        early, without fitting, once :attr:`stop_requested` is True (see the class docstring)."""
         self.iterations += 1
         target = self.iteration_frames - self.frames % self.iteration_frames
         collected = 0
         metrics: Metrics = {}
-        while collected < target and not self.should_stop():
+        while collected < target and not self.stop_requested:
             batch = self.collect(target - collected)
             self._store(batch)
             collected += batch.numel()
@@ -246,7 +202,7 @@ class MBRL(EnvAlgorithm):
         self.buffer.extend(data)
 
     def fit(self) -> Metrics:
-        """``cfg.fit_steps`` Adam steps on the models (fewer once :meth:`should_stop` is True, at
+        """``cfg.fit_steps`` Adam steps on the models (fewer once :attr:`stop_requested` is True, at
         least one); training and validation losses."""
         data = self.buffer[: len(self.buffer)]
         train, valid = data[~data["validation"]], data[data["validation"]]
@@ -266,7 +222,7 @@ class MBRL(EnvAlgorithm):
             loss.backward()
             self.optimizer.step()
             totals.append(loss.detach())
-            if self.should_stop():
+            if self.stop_requested:
                 break
         metrics: Metrics = {MODEL_LOSS: float(torch.stack(totals).mean())}
         if len(valid):
