@@ -48,7 +48,7 @@ def test_greedy_policy_outputs_actions(dqn):
 def test_loss_forward_backward_moves_the_online_net_only(dqn):
     while len(dqn.buffer) < 16:
         dqn.train_step()
-    batch = dqn.buffer.sample()
+    batch = dqn.buffer.sample(dqn.cfg.batch_size)
     assert batch.batch_size == torch.Size([8])
     loss = dqn.loss(batch)["loss"]
     assert loss.ndim == 0 and torch.isfinite(loss)
@@ -108,7 +108,7 @@ def test_n_step_dqn_stores_the_discount_exponent_and_trains():
     try:
         for _ in range(4):
             metrics = algo.train_step()
-        sample = algo.buffer.sample()
+        sample = algo.buffer.sample(algo.cfg.batch_size)
         assert set(sample["steps_to_next_obs"].unique().tolist()) <= {1, 2, 3}
         assert math.isfinite(metrics["train/loss"])
     finally:

@@ -11,11 +11,11 @@ from tensordict.nn import TensorDictSequential
 from torchrl.data.postprocs import MultiStep
 from torchrl.envs import EnvBase
 from torchrl.modules import EGreedyModule, QValueActor
-from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate
+from torchrl.objectives import DQNLoss, HardUpdate
 
 from rlpipe.algos.base import TRANSITION_KEYS, Metrics, batch_steps
 from rlpipe.algos.configs import DQNConfig
-from rlpipe.algos.offpolicy import OffPolicy
+from rlpipe.algos.offpolicy import ForeachSoftUpdate, OffPolicy
 from rlpipe.envs import is_discrete, observation_size
 from rlpipe.errors import RlpipeError, check
 from rlpipe.models import TensorModule
@@ -93,7 +93,7 @@ class DQN(OffPolicy):
         self.target_updater = (  # tau 1: copy (TorchRL's SoftUpdate wants tau <= 0.5)
             HardUpdate(self.loss, value_network_update_interval=0)  # 0: copy at every step()
             if cfg.tau == 1.0
-            else SoftUpdate(self.loss, tau=cfg.tau)
+            else ForeachSoftUpdate(self.loss, tau=cfg.tau)
         )
         self.optimizer = torch.optim.AdamW(
             self.loss.parameters(),

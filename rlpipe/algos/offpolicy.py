@@ -9,6 +9,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.envs import EnvBase
+from torchrl.objectives import LossModule, SoftUpdate
 
 from rlpipe.algos.base import LOSS, TRANSITION_KEYS, EnvAlgorithm, Metrics, episode_metrics
 from rlpipe.algos.configs import OffPolicyConfig
@@ -38,9 +39,8 @@ class OffPolicy(EnvAlgorithm):
 
     def start_loop(self, env: EnvBase, collect_policy: TensorDictModuleBase) -> None:
         """The replay buffer, the target cadence and the collector (last in ``_build``)."""
-        self.buffer = ReplayBuffer(
-            storage=LazyTensorStorage(self.cfg.buffer_size, device=self.device),
-            batch_size=self.cfg.batch_size,
+        self.buffer = ReplayBuffer(  # sampled with an explicit size: a batch of minibatches
+            storage=LazyTensorStorage(self.cfg.buffer_size, device=self.device)
         )
         self._target_cadence = Cadence(self.cfg.target_update_every, 0)
         self.make_collector(env, collect_policy, self.cfg.frames_per_batch)
@@ -76,8 +76,10 @@ class OffPolicy(EnvAlgorithm):
         if len(self.buffer) < max(cfg.learning_starts, cfg.batch_size):
             return metrics
         losses, scalars = [], {}
-        for _ in range(cfg.updates_per_batch):
-            loss, scalars = self.loss_of(self.buffer.sample())
+        # every minibatch of the batch's updates in one draw (one sampler and storage call)
+        draws = self.buffer.sample(cfg.updates_per_batch * cfg.batch_size)
+        for minibatch in draws.reshape(cfg.updates_per_batch, cfg.batch_size).unbind(0):
+            loss, scalars = self.loss_of(minibatch)
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
             self.clip_gradients()
@@ -97,3 +99,25 @@ class OffPolicy(EnvAlgorithm):
         self.follow_schedules()
         self._target_cadence = Cadence(self.cfg.target_update_every, self.frames)
         self.collector.update_policy_weights_()
+
+
+class ForeachSoftUpdate(SoftUpdate):
+    """TorchRL's ``SoftUpdate`` (target ← τ·online + (1 − τ)·target), each step one
+    ``torch._foreach_lerp_`` over every target tensor instead of one op per parameter group."""
+
+    def __init__(self, loss_module: LossModule, *, tau: float) -> None:
+        super().__init__(loss_module, tau=tau)
+        self._pairs: tuple[list[torch.Tensor], list[torch.Tensor]] | None = None
+
+    @torch.no_grad()
+    def step(self) -> None:
+        if self._pairs is None:  # the same tensors for the whole run: loads copy into them
+            super().step()  # the parent's checks (initialised, targets outside the graph)
+            sources, targets = [], []
+            for key, source in self._sources.items():
+                target = self._targets.get(f"target_{key}")
+                sources += [leaf.data for leaf in source.values(True, True)]
+                targets += [leaf.data for leaf in target.values(True, True)]
+            self._pairs = targets, sources
+            return
+        torch._foreach_lerp_(*self._pairs, 1 - self.eps)

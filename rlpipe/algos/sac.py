@@ -1,21 +1,22 @@
-"""SAC assembled from TorchRL parts: a tanh-Gaussian ProbabilisticActor, twin Q ValueOperators,
-the Collector, a ReplayBuffer, SACLoss (automatic entropy tuning) and SoftUpdate."""
+"""SAC assembled from TorchRL parts: a tanh-Gaussian ProbabilisticActor, twin Q networks, the
+Collector, a ReplayBuffer, SACLoss (automatic entropy tuning) and a soft target update."""
 
 from __future__ import annotations
 
 import torch
 from tensordict import TensorDictBase
-from tensordict.nn import NormalParamExtractor, TensorDictModule
+from tensordict.nn import NormalParamExtractor
 from torch import nn
 from torchrl.data import Bounded
 from torchrl.envs import EnvBase
-from torchrl.modules import MLP, ProbabilisticActor, TanhNormal, ValueOperator
-from torchrl.objectives import SACLoss, SoftUpdate
+from torchrl.modules import MLP, ProbabilisticActor, TanhNormal
+from torchrl.objectives import SACLoss
 
 from rlpipe.algos.configs import SACConfig
-from rlpipe.algos.offpolicy import OffPolicy
+from rlpipe.algos.offpolicy import ForeachSoftUpdate, OffPolicy
 from rlpipe.envs import is_discrete, observation_size
 from rlpipe.errors import RlpipeError
+from rlpipe.models import TensorModule
 
 
 class SAC(OffPolicy):
@@ -45,21 +46,23 @@ class SAC(OffPolicy):
             self.network(n_obs, 2 * size, outputs),
             NormalParamExtractor(scale_mapping="biased_softplus_1"),
         )
+        # TensorModule: a TensorDictModule without its per-call lookups (see its docstring)
         self.policy = ProbabilisticActor(
-            TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"]),
+            TensorModule(net, ["observation"], ["loc", "scale"]),
             in_keys=["loc", "scale"],
             spec=spec,
             distribution_class=TanhNormal,
             distribution_kwargs={"low": spec.space.low, "high": spec.space.high},
         ).to(self.device)
-        qvalue = ValueOperator(  # TorchRL's MLP concatenates its inputs: Q(s, a)
+        qvalue = TensorModule(  # TorchRL's MLP concatenates its inputs: Q(s, a)
             MLP(
                 in_features=n_obs + size,
                 out_features=1,
                 num_cells=cfg.hidden_sizes,
                 activation_class=nn.ReLU,
             ),
-            in_keys=["observation", "action"],
+            ["observation", "action"],
+            ["state_action_value"],
         ).to(self.device)
         self.loss = SACLoss(
             self.policy,
@@ -71,7 +74,7 @@ class SAC(OffPolicy):
             deactivate_vmap=True,  # the two critics in a loop: cheaper than torch.vmap on CPU
         )
         self.loss.make_value_estimator(gamma=cfg.gamma)
-        self.target_updater = SoftUpdate(self.loss, tau=cfg.tau)
+        self.target_updater = ForeachSoftUpdate(self.loss, tau=cfg.tau)
         self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=cfg.lr, fused=True)
         self.start_loop(env, self.policy)
 

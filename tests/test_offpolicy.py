@@ -1,0 +1,64 @@
+"""The off-policy loop's parts: the foreach soft target update is TorchRL's SoftUpdate, and one
+batch of updates draws its minibatches in one sample."""
+
+from __future__ import annotations
+
+from functools import partial
+
+import pytest
+import torch
+from torchrl.objectives import SoftUpdate
+
+from rlpipe.algos import DQN, SAC, DQNConfig, SACConfig
+from rlpipe.config import EnvConfig
+from rlpipe.envs import make_env
+
+SMALL = dict(batch_size=8, buffer_size=64, learning_starts=8, frames_per_batch=8)
+
+
+@pytest.mark.parametrize(
+    ("algo", "cfg", "env_id"),
+    [(DQN, DQNConfig(**SMALL, tau=0.1), "CartPole-v1"), (SAC, SACConfig(**SMALL), "Pendulum-v1")],
+    ids=["dqn", "sac"],
+)
+def test_the_foreach_target_update_is_torchrls_soft_update(algo, cfg, env_id):
+    """Both updaters over copies of one loss, the online nets moved between steps: the targets
+    stay equal step after step."""
+    torch.manual_seed(0)
+    ours = algo(partial(make_env, EnvConfig(id=env_id), seed=0), cfg)
+    torch.manual_seed(0)
+    reference = algo(partial(make_env, EnvConfig(id=env_id), seed=0), cfg)
+    theirs = SoftUpdate(reference.loss, tau=cfg.tau)
+    try:
+        for step in range(3):
+            for a, b in zip(ours.loss.parameters(), reference.loss.parameters(), strict=True):
+                noise = torch.randn(a.shape, generator=torch.Generator().manual_seed(step))
+                with torch.no_grad():
+                    a.add_(noise)
+                    b.add_(noise)
+            ours.target_updater.step()
+            theirs.step()
+            mine = ours.loss.state_dict()
+            for key, value in reference.loss.state_dict().items():
+                if "target" in key:
+                    torch.testing.assert_close(mine[key], value)
+        assert any("target" in key for key in mine)  # the comparison above compared targets
+    finally:
+        ours.close()
+        reference.close()
+
+
+def test_a_batch_of_updates_takes_its_minibatches_from_one_draw(monkeypatch):
+    torch.manual_seed(0)
+    algo = DQN(partial(make_env, EnvConfig(num_envs=2), seed=0), DQNConfig(**SMALL))
+    draws = []
+    sample = algo.buffer.sample
+    monkeypatch.setattr(algo.buffer, "sample", lambda n: draws.append(n) or sample(n))
+    try:
+        while not draws:
+            algo.train_step()
+        assert draws == [algo.cfg.updates_per_batch * algo.cfg.batch_size]
+        steps = {int(s["step"]) for s in algo.optimizer.state.values()}
+        assert steps == {algo.cfg.updates_per_batch}
+    finally:
+        algo.close()
