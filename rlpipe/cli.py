@@ -4,6 +4,7 @@ shared opening, and one-line error reporting."""
 from __future__ import annotations
 
 import dataclasses
+import importlib.resources
 import re
 import sys
 from collections.abc import Callable, Iterator, Sequence
@@ -12,7 +13,7 @@ from typing import Any, NoReturn
 from hydra import compose, initialize_config_module
 from hydra.core.config_store import ConfigStore
 from hydra.errors import HydraException, MissingConfigException
-from omegaconf import MISSING, DictConfig, OmegaConf
+from omegaconf import MISSING, DictConfig, OmegaConf, open_dict
 from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
 
 from rlpipe.config import Config, EnvConfig
@@ -73,10 +74,53 @@ def open_entries(overrides: Sequence[str]) -> list[str]:
 def compose_run(*overrides: str) -> Config:
     """The :class:`Config` that ``python -m rlpipe <overrides>`` would run.
 
-    The presets from Python: ``compose_run("+experiment=dqn_cartpole", "seed=1")``."""
+    Tuned settings included (``conf/tuned/<algo>_<env>.yaml``; ``"~tuned"``: the algorithm's
+    own defaults). The presets from Python: ``compose_run("algo=dqn", "seed=1")``."""
     register_configs()
     with initialize_config_module(config_module="rlpipe.conf", version_base="1.3"):
-        return to_config(compose("config", overrides=open_entries(overrides)))
+        cfg = compose("config", overrides=open_entries(overrides), return_hydra_config=True)
+    check_choices(cfg.hydra.runtime.choices)
+    return to_config(without_hydra(cfg))
+
+
+def without_hydra(cfg: DictConfig) -> DictConfig:
+    """A composed config without the ``hydra`` node that ``return_hydra_config`` adds."""
+    with open_dict(cfg):
+        del cfg["hydra"]
+    return cfg
+
+
+def check_choices(choices: DictConfig) -> None:
+    """A ``+experiment=<preset>`` names its algo and env: an ``algo=`` or ``env=`` that
+    contradicts them is refused in one line (it would run something else under its name)."""
+    preset = choices.get("experiment")
+    if not preset:
+        return
+    source = importlib.resources.files("rlpipe.conf") / "experiment" / f"{preset}.yaml"
+    wanted = {
+        next(iter(entry)).split()[-1].strip("/"): next(iter(entry.values()))
+        for entry in OmegaConf.load(source).get("defaults", [])
+        if isinstance(entry, DictConfig)
+    }
+    for group, option in wanted.items():
+        check(
+            choices.get(group) == option,
+            f"+experiment={preset} is {wanted.get('algo')} on env={wanted.get('env')}, but "
+            f"{group}={choices.get(group)} was asked for: drop one of them (the tuned settings "
+            f"of any algo x env are picked by algo=... env=... alone)",
+        )
+
+
+def tuned_notice(choices: DictConfig) -> str | None:
+    """The line a run with tuned settings starts with (None: the algorithm's own defaults)."""
+    tuned = choices.get("tuned")
+    if not tuned:
+        return None
+    return (
+        f"rlpipe: {choices.get('algo')} on env={choices.get('env')} with its tuned settings "
+        f"(conf/tuned/{tuned}.yaml, results in BENCHMARKS.md); the algorithm's own defaults "
+        "instead: add ~tuned"
+    )
 
 
 def compose_config(name: str, overrides: Sequence[str]) -> Any:

@@ -21,7 +21,16 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
-from rlpipe.cli import USER_ERRORS, fail, open_entries, register_configs, to_config
+from rlpipe.cli import (
+    USER_ERRORS,
+    check_choices,
+    fail,
+    open_entries,
+    register_configs,
+    to_config,
+    tuned_notice,
+    without_hydra,
+)
 from rlpipe.errors import RlpipeError, check
 from rlpipe.outcomes import RunResult
 from rlpipe.rundir import RunDir
@@ -113,7 +122,9 @@ def validate_overrides(argv: Sequence[str]) -> DictConfig:
         if not re.match(r"^[+~]{0,2}hydra[./]", arg):
             overrides.append(arg)
     with initialize_config_module("rlpipe.conf", version_base="1.3"):
-        cfg = compose("config", overrides=overrides)
+        cfg = compose("config", overrides=overrides, return_hydra_config=True)
+    check_choices(cfg.hydra.runtime.choices)
+    cfg = without_hydra(cfg)
     to_config(cfg.copy())
     return cfg
 
@@ -127,7 +138,11 @@ def task(cfg: DictConfig) -> float | None:
     run_dir = hydra_cfg.runtime.output_dir
 
     def job() -> RunResult:
+        check_choices(hydra_cfg.runtime.choices)
         config = to_config(cfg)  # checked before torch loads (with the pipeline, below)
+        notice = tuned_notice(hydra_cfg.runtime.choices)
+        if notice:
+            print(notice)
         from rlpipe.pipeline import train
 
         if "BasicLauncher" not in hydra_cfg.launcher.get("_target_", "BasicLauncher"):

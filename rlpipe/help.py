@@ -14,7 +14,8 @@ GROUPS = {
     "env": "the environment",
     "algo": "the algorithm (its keys: python -m rlpipe algo=<name> --cfg job)",
     "logger": "where metrics go besides the CSV files",
-    "+experiment": "a tuned preset (added with +)",
+    "tuned": "settings tuned for an algo x env, picked with them (~tuned: the algo's own)",
+    "+experiment": "a tuned preset by name (added with +): the same as its algo=... env=...",
     "+sweep": "an Optuna hyper-parameter search (added with +, run with -m)",
 }
 DEFAULTS = {"env": "cartpole", "algo": "dqn", "logger": "csv"}  # conf/config.yaml's defaults
@@ -40,6 +41,7 @@ ENTRY_POINTS = {
 }
 EXAMPLES = {
     "python -m rlpipe algo=ars env=bipedal": "ARS teaches BipedalWalker to walk (the main job)",
+    "python -m rlpipe algo=ars env=bipedal ~tuned": "the same with the notebook's own settings",
     "python -m rlpipe +experiment=dqn_cartpole seed=1": "a tuned preset, another seed",
     "python -m rlpipe -m algo=dqn,reinforce seed=0,1,2": "a sweep: 6 runs, then a summary",
 }

@@ -206,7 +206,7 @@ def run_card(cfg: Config, overrides: Sequence[str] = ()) -> RunCard:
         named = key in ("seed", "algo", "env") or key.startswith("hydra")
         return not named and key.split(".")[0] not in NOT_FINGERPRINTED
 
-    extra = [o for o in overrides if told(o)]
+    extra = ["untuned" if o == "~tuned" else o for o in overrides if told(o)]
     name = f"{cfg.algo.name} {cfg.env.id} seed={cfg.seed}"
     name += f" [{' '.join(extra)}]" if extra else ""
     flat = flatten(OmegaConf.to_container(OmegaConf.structured(cfg)))

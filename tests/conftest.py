@@ -11,7 +11,8 @@ from typing import Any
 
 import pytest
 
-TINY = ["progress=false", "total_frames=200", "eval_every=100", "eval_episodes=2"]
+# ~tuned: the algorithms' own defaults (tests of the tuned settings name them)
+TINY = ["~tuned", "progress=false", "total_frames=200", "eval_every=100", "eval_episodes=2"]
 
 
 def run_module(

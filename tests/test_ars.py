@@ -421,13 +421,16 @@ def test_cli_trains_ars(rlpipe_cli):
 
 
 BAD = [
-    (["algo.num_best=17"], "algo.num_best (17) must be between 1 and algo.num_directions (16)"),
+    (
+        ["algo.num_directions=16", "algo.num_best=17"],
+        "algo.num_best (17) must be between 1 and algo.num_directions (16)",
+    ),
     (["algo.noise=0"], "algo.noise must be > 0"),
     (["algo.step_size=-1"], "algo.step_size must be > 0"),
 ]
 
 
-@pytest.mark.parametrize("args, message", BAD, ids=[a[0] for a, _ in BAD])
+@pytest.mark.parametrize("args, message", BAD, ids=[a[-1] for a, _ in BAD])
 def test_cli_bad_input_is_one_line(rlpipe_cli, args, message):
     proc = rlpipe_cli("progress=false", "algo=ars", "env=bipedal", *args)
     assert proc.returncode == 2

@@ -76,8 +76,8 @@ BAD_INPUTS = [
     (["seed=abc"], "could not be converted to Integer"),
     (["algo.lr=fast"], "could not be converted to Float"),
     (["env=pendulum"], "DQN needs a discrete action space"),
-    (["+experiment=dqn_cartpole", "env=pendulum"], "DQN needs a discrete action space"),
-    (["+experiment=dqn_lunarlander", "env=bipedal"], "DQN needs a discrete action space"),
+    (["+experiment=dqn_cartpole", "env=pendulum"], "+experiment=dqn_cartpole is dqn on env=cartp"),
+    (["+experiment=dqn_lunarlander", "algo=ppo"], "but algo=ppo was asked for: drop one of them"),
     (["env=bipedal"], "DQN needs a discrete action space"),
     (["total_frames=0"], "total_frames must be >= 1"),
     (["total_frames=-100"], "total_frames must be >= 1"),
@@ -150,3 +150,19 @@ def test_cfg_job_prints_what_hydra_prints(tmp_path, overrides):
     hydras = run_module("rlpipe", *overrides, "--cfg", "job", "-p", "_global_", cwd=tmp_path)
     assert ours.returncode == hydras.returncode == 0, ours.stderr + hydras.stderr
     assert ours.stdout == hydras.stdout and ours.stdout.startswith("env:\n")
+
+
+def test_a_pair_with_tuned_settings_runs_them_and_says_so(rlpipe_cli, tmp_path):
+    proc = rlpipe_cli(
+        "algo=ppo",
+        "env=cartpole",
+        "total_frames=512",
+        "eval_every=0",
+        "eval_episodes=1",
+        "progress=false",
+    )
+    assert proc.returncode == 0, proc.stderr
+    first = proc.stdout.splitlines()[0]
+    assert first.startswith("rlpipe: ppo on env=cartpole with its tuned settings")
+    assert "conf/tuned/ppo_cartpole.yaml" in first and "add ~tuned" in first
+    assert "num_envs: 16" in (tmp_path / "run" / "config.yaml").read_text()

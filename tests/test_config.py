@@ -28,7 +28,7 @@ def compose_config(*overrides: str) -> Config:
 
 
 def test_default_is_dqn_on_cartpole():
-    cfg = compose_config()
+    cfg = compose_config("~tuned")
     assert isinstance(cfg.algo, DQNConfig)
     assert cfg.env.id == "CartPole-v1"
     assert cfg.logger.backend == "csv"
@@ -151,9 +151,28 @@ def test_plain_dataclasses_work_without_hydra():
         DQNConfig(batch_size=0)
 
 
-def test_python_default_config_is_the_cli_default():
-    assert compose_config() == Config()
-    assert compose_config().resolved() == Config().resolved()
+def test_python_default_config_is_the_cli_default_without_tuned_settings():
+    assert compose_config("~tuned") == Config()
+    assert compose_config("~tuned").resolved() == Config().resolved()
+
+
+@pytest.mark.parametrize("preset", sorted(p.stem for p in (CONF / "experiment").glob("*.yaml")))
+def test_the_tuned_settings_of_a_pair_are_its_preset(preset):
+    """``algo=A env=E`` picks ``conf/tuned/A_E.yaml``; ``+experiment=<preset>`` only names the
+    pair; ``~tuned`` drops the tuned settings."""
+    named = compose_config(f"+experiment={preset}")
+    pair = compose_config(f"algo={named.algo.name}", f"env={_env_option(preset)}")
+    assert named == pair
+    plain = compose_config(f"algo={named.algo.name}", f"env={_env_option(preset)}", "~tuned")
+    assert plain.algo == type(named.algo)()
+    tuned = CONF / "tuned" / f"{named.algo.name}_{_env_option(preset)}.yaml"
+    settings = [line for line in tuned.read_text().splitlines() if not line.startswith("#")]
+    assert (plain != named) == any(line.strip() for line in settings)  # mbrl_pendulum: none
+
+
+def _env_option(preset: str) -> str:
+    text = (CONF / "experiment" / f"{preset}.yaml").read_text()
+    return text.split("override /env: ")[1].split()[0]
 
 
 @pytest.mark.parametrize("algo", ["dqn", "reinforce", "ars", "mbrl"])
@@ -163,7 +182,7 @@ def test_algo_files_only_name_their_schema(algo):
     assert list(node) == ["defaults"]
     assert OmegaConf.to_container(node.defaults) == [f"/schema/algo/{algo}@_here_", "_self_"]
     assert "_global_" not in (CONF / "algo" / f"{algo}.yaml").read_text()
-    cfg = compose_config(f"algo={algo}")
+    cfg = compose_config(f"algo={algo}", "~tuned")
     assert cfg.algo == ALGORITHMS[algo][0]()
 
 
@@ -177,9 +196,11 @@ def test_algo_files_only_name_their_schema(algo):
     ],
 )
 def test_null_run_keys_take_the_algorithms_values(algo, expected):
-    resolved = compose_config(f"algo={algo}").resolved()
+    resolved = compose_config(f"algo={algo}", "~tuned").resolved()
     assert tuple(getattr(resolved, key) for key in RUN_KEYS) == expected
-    overridden = compose_config(f"algo={algo}", "total_frames=123", "eval_every=0").resolved()
+    overridden = compose_config(
+        f"algo={algo}", "~tuned", "total_frames=123", "eval_every=0"
+    ).resolved()
     assert (overridden.total_frames, overridden.eval_every) == (123, 0)
 
 

@@ -204,7 +204,14 @@ def test_training_on_a_full_disk_fails_with_one_line(tmp_path: Path, rlpipe_cli)
     ]
 
 
-TRACKED = ["total_frames=400", "eval_every=200", "eval_episodes=2", "algo.lr=3e-4", "log_every=100"]
+TRACKED = [
+    "~tuned",
+    "total_frames=400",
+    "eval_every=200",
+    "eval_episodes=2",
+    "algo.lr=3e-4",
+    "log_every=100",
+]
 
 
 def _tracked_run(rlpipe_cli, tmp_path: Path, backend: str) -> Path:
@@ -222,7 +229,7 @@ def test_tensorboard_holds_the_config_name_curve_and_loss_cadence(tmp_path, rlpi
 
     run_dir = _tracked_run(rlpipe_cli, tmp_path, "tensorboard")
     (folder,) = (run_dir / "tensorboard").iterdir()
-    assert folder.name == "dqn_CartPole-v1_seed=0_algo.lr=3e-4_"  # named by what decides it
+    assert folder.name == "dqn_CartPole-v1_seed=0_untuned_algo.lr=3e-4_"  # named by what decides it
     hparams, images, loss_steps = {}, [], []
     for events in folder.rglob("events.out.tfevents.*"):
         acc = EventAccumulator(str(events.parent), size_guidance={"tensors": 0, "images": 0})

@@ -170,7 +170,7 @@ def _copy_run(src: Path, dst: Path) -> Path:
 def test_bad_resume_is_one_line_and_touches_nothing(tmp_path, finished_run, case, message):
     run_dir = _copy_run(finished_run, tmp_path / "run")
     # the finished run's own settings (a run dir refuses another run before anything else)
-    same_run = ["env.num_envs=2", "algo.frames_per_batch=20", "algo.learning_starts=40"]
+    same_run = ["~tuned", "env.num_envs=2", "algo.frames_per_batch=20", "algo.learning_starts=40"]
     overrides = [*same_run, "algo.batch_size=16", "progress=false", "total_frames=300"]
     overrides.append(f"resume={run_dir}")
     if case == "missing":
