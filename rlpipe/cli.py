@@ -16,6 +16,7 @@ from omegaconf import MISSING, DictConfig, OmegaConf
 from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
 
 from rlpipe.config import Config, EnvConfig
+from rlpipe.console import say
 from rlpipe.errors import RlpipeError, check
 from rlpipe.outcomes import Interrupted
 from rlpipe.registry import ALGORITHMS
@@ -149,7 +150,7 @@ def fail(err: BaseException) -> NoReturn:
     """Print ``rlpipe: error: <one line>`` to stderr and exit with code 2; an interrupted run
     prints how to resume and exits with 128 + the signal number."""
     if isinstance(err, Interrupted):
-        print(f"rlpipe: {err}", file=sys.stderr)
+        say(f"rlpipe: {err}", err=True)
         sys.exit(err.exit_code)
     print(f"rlpipe: error: {format_error(err)}", file=sys.stderr)
     sys.exit(2)

@@ -4,6 +4,7 @@ comparisons of many (``python -m rlpipe.plot``). Reading the metric CSVs and gro
 
 from __future__ import annotations
 
+import io
 import os
 import textwrap
 from collections.abc import Sequence
@@ -14,9 +15,11 @@ from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
 from rlpipe.errors import check
+from rlpipe.files import write_atomic
 from rlpipe.metrics import EVAL_METRIC
 from rlpipe.rundir import RunDir
 from rlpipe.runs import Group
+from rlpipe.stats import AGGREGATES, bootstrap_band
 
 WINDOW = 100  # episodes in the training-return moving average (as the DQN notebook plotted)
 
@@ -66,8 +69,16 @@ def plot_run(run_dir: str | Path, path: str | Path | None = None) -> Path:
     _label(right, "training episode return")
     fig.suptitle(_title(run_dir), fontsize=10)
     path = Path(path) if path else run_dir / RunDir.CURVE
-    fig.savefig(path)
+    save_figure(fig, path)
     return path
+
+
+def save_figure(fig: Figure, path: Path) -> None:
+    """Write ``fig`` to ``path`` (its format by the suffix) atomically: a link at ``path`` is
+    replaced, never written through."""
+    data = io.BytesIO()
+    fig.savefig(data, format=path.suffix.lstrip(".") or "png")
+    write_atomic(path, data.getvalue())
 
 
 def _label(ax: Axes, title: str) -> None:
@@ -80,27 +91,6 @@ def _label(ax: Axes, title: str) -> None:
 
 
 # ---- many runs: seeds grouped, mean/IQM line with a bootstrap band -------------------------
-
-
-def iqm(values: np.ndarray, axis: int = 0) -> np.ndarray:
-    """Interquartile mean: the mean of the middle 50% of ``values`` along ``axis``."""
-    ordered = np.sort(values, axis=axis)
-    n = ordered.shape[axis]
-    cut = n // 4
-    return np.take(ordered, range(cut, n - cut), axis=axis).mean(axis=axis)
-
-
-AGGREGATES = {"mean": lambda v, axis=0: v.mean(axis=axis), "iqm": iqm}
-
-
-def bootstrap_band(
-    values: np.ndarray, aggregate: str, samples: int = 2000, seed: int = 0
-) -> tuple[np.ndarray, np.ndarray]:
-    """95% percentile-bootstrap interval of ``aggregate`` over runs (rows of ``values``)."""
-    rng = np.random.default_rng(seed)
-    picks = rng.integers(0, len(values), size=(samples, len(values)))
-    stats = AGGREGATES[aggregate](values[picks], axis=1)  # (samples, T)
-    return np.percentile(stats, 2.5, axis=0), np.percentile(stats, 97.5, axis=0)
 
 
 def aligned(runs: Sequence[Path], metric: str) -> tuple[np.ndarray, np.ndarray]:
@@ -131,11 +121,11 @@ def plot_groups(
     fig = groups_figure(groups, metric=metric, aggregate=aggregate, title=title)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
+    save_figure(fig, path)
     written = [path]
     if svg:
         written.append(path.with_suffix(".svg"))
-        fig.savefig(written[-1])
+        save_figure(fig, written[-1])
     return written
 
 

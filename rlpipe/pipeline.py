@@ -11,12 +11,12 @@ from pathlib import Path
 
 import torch
 from torch import nn
-from tqdm.auto import tqdm
 
 from rlpipe.algos import make_algorithm
 from rlpipe.algos.base import Algorithm
 from rlpipe.callbacks import make_callbacks
 from rlpipe.config import RUN_KEYS, Config
+from rlpipe.console import say
 from rlpipe.envs import make_env
 from rlpipe.episodes import eval_envs
 from rlpipe.loggers import make_logger, run_card
@@ -88,9 +88,7 @@ def train(
                 runner.restore(start.state)
         with run.session(cfg, frames, cfg.keep_checkpoints):  # checked: from here on it is written
             if start is not None and not runner.finished:  # a finished run says so itself
-                tqdm.write(
-                    f"rlpipe: resuming {run.path} from {start.path.name} at {frames:,} frames"
-                )
+                say(f"rlpipe: resuming {run.path} from {start.path.name} at {frames:,} frames")
             if on_start is not None:
                 on_start(run)
             runner.logger = make_logger(cfg.logger, run.path, run_card(cfg, run.overrides()))

@@ -15,10 +15,11 @@ from pathlib import Path
 
 from rlpipe.cli import run_entry_point
 from rlpipe.errors import RlpipeError, check
-from rlpipe.figures import AGGREGATES, plot_groups
+from rlpipe.figures import plot_groups
 from rlpipe.files import check_writable
 from rlpipe.metrics import EVAL_METRIC
 from rlpipe.runs import find_runs, group_runs
+from rlpipe.stats import AGGREGATES
 
 OPTIONS = {"agg": "mean", "svg": "false", "metric": EVAL_METRIC, "out": None}
 BOOLEANS = {"true": True, "false": False}

@@ -14,12 +14,12 @@ from typing import Any, Protocol
 
 from torchrl.envs import EnvBase
 from torchrl.record.loggers import Logger
-from tqdm.auto import tqdm
 
 from rlpipe import faults
 from rlpipe.algos.base import EPISODE_RETURN, Algorithm, Metrics
 from rlpipe.cadence import Cadence, Window
 from rlpipe.config import Config, config_to_dict
+from rlpipe.console import say
 from rlpipe.episodes import EvalResult, EvalStopped, evaluate
 from rlpipe.errors import RlpipeError, check
 from rlpipe.outcomes import Diverged, Interrupted, RunResult
@@ -211,7 +211,7 @@ class Runner:
         """The result of a run resumed at (or past) its budget: its ``summary.json``, or, when
         a kill came between the final checkpoint and the summary, the final evaluation the
         checkpoint holds (then the summary is written and the callbacks run)."""
-        tqdm.write(
+        say(
             f"rlpipe: {self.run_dir} already finished at {self.algo.frames:,} frames; "
             "raise total_frames to train it further"
         )

@@ -16,6 +16,7 @@ from torchrl.envs import EnvBase, ExplorationType, set_exploration_type
 from rlpipe.config import EnvConfig
 from rlpipe.envs import make_env, sub_envs
 from rlpipe.errors import RlpipeError, check
+from rlpipe.files import temp_path
 
 MAX_STEPS = 10_000  # for envs without a time limit
 
@@ -75,11 +76,16 @@ def record_episode(policy: TensorDictModuleBase, env: EnvBase) -> np.ndarray:
 
 
 def write_mp4(frames: np.ndarray, path: str | Path, fps: int) -> Path:
-    """Encode ``(T, H, W, 3)`` uint8 frames as an H.264 mp4 at ``path``."""
+    """Encode ``(T, H, W, 3)`` uint8 frames as an H.264 mp4 at ``path`` (encoded aside, then
+    renamed into place: never written through a link)."""
     import imageio.v2 as imageio
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    temp = temp_path(path).with_suffix(".mp4")  # encoded aside, renamed over a link or file
+    if os.path.lexists(temp):
+        os.unlink(temp)
     # macro_block_size=2: keep the frame size (H.264 only needs even sides)
-    imageio.mimwrite(path, list(frames), fps=fps, codec="libx264", macro_block_size=2)
+    imageio.mimwrite(temp, list(frames), fps=fps, codec="libx264", macro_block_size=2)
+    os.replace(temp, path)
     return path
