@@ -60,13 +60,12 @@ def train(
     frames = 0 if start is None else start.frames
     seed_everything(cfg.seed)
     set_threads(cfg.threads, device)
+    eval_seed = (cfg.seed + 10_000) % SEED_RANGE  # every evaluation: these episodes' starts
     with ExitStack() as stack:
-        eval_env = make_env(
-            cfg.env, num_envs=eval_envs(cfg.eval_episodes), seed=(cfg.seed + 10_000) % SEED_RANGE
-        )
+        eval_env = make_env(cfg.env, num_envs=eval_envs(cfg.eval_episodes), seed=eval_seed)
         stack.callback(eval_env.close)
-        algo = make_algorithm(  # a resumed run meets fresh episodes: the seed moves with the frames
-            partial(make_env, cfg.env, seed=(cfg.seed + frames) % SEED_RANGE),
+        algo = make_algorithm(  # a resumed run restarts its episodes as the checkpoint says
+            partial(make_env, cfg.env, seed=cfg.seed),
             cfg.algo,
             device=device,
             network=network,
@@ -82,6 +81,7 @@ def train(
             callbacks=make_callbacks(cfg),  # before the logger: a bad video setting writes nothing
             progress=cfg.progress,
             config=cfg,  # config.yaml, and in every checkpoint
+            eval_seed=eval_seed,
         )
         if start is not None:
             with start.applying():

@@ -102,6 +102,7 @@ def group_by_overrides(
 
 
 def group_runs(runs: Sequence[Path]) -> list[Group]:
-    """Group runs that differ only by ``seed`` (or ``resume``), each labelled by what sets it
-    apart (:func:`group_by_overrides` of the overrides that made them)."""
+    """Group runs that differ only by ``seed`` (or ``resume``), labelled by what sets them apart.
+
+    The groups and labels of :func:`group_by_overrides`, over the overrides that made each run."""
     return [Group(label, members) for label, members in group_by_overrides(runs, run_overrides)]
