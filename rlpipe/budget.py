@@ -24,13 +24,10 @@ def spent(algo: Algorithm, total_frames: int | None) -> bool:
 
 
 def no_evaluation_inside(algo: Algorithm, total_frames: int | None, eval_every: int) -> str | None:
-    """The warning for a run whose next evaluation lies past the most frames its budget can
-    take (it evaluates only at the end), or None."""
+    """The warning for a run starting whose first evaluation lies past the most frames its
+    budget can take (it evaluates only at the end), or None."""
     bounds = [b for b in (total_frames, algo.budget_frames) if b is not None]
-    if eval_every <= 0 or not bounds:
-        return None
-    after = (algo.frames // eval_every + 1) * eval_every
-    if after < min(bounds):
+    if algo.frames or eval_every <= 0 or not bounds or eval_every < min(bounds):
         return None
     return (
         f"eval_every={eval_every:,} frames, and this run ends within {min(bounds):,} frames: "

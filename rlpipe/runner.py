@@ -203,14 +203,15 @@ class Runner:
                     bar.show(self._last_return, self.last_eval)
                 if not self.finished and evaluation.due(frames):
                     self._evaluate()
-                if signals.received is not None:
-                    raise Interrupted(signals.received, frames, self.save(interrupted=True))
-                if not self.finished and checkpoint.due(frames):
+                due = not self.finished and checkpoint.due(frames)
+                if signals.received is not None and not self.finished:  # (at the end: below)
+                    raise Interrupted(signals.received, frames, self.save(interrupted=not due))
+                if due:
                     self.save()
                     self.algo.restart_episodes()  # as a run resumed from this checkpoint does
             self._evaluate()
             if signals.received is not None:
-                raise Interrupted(signals.received, self.algo.frames, self.save(interrupted=True))
+                raise Interrupted(signals.received, self.algo.frames, self.save())
             self.save()
             faults.point("final_checkpoint")
         return self._finish(time.perf_counter() - start)
@@ -256,8 +257,8 @@ class Runner:
         """Write a checkpoint now: the algorithm's state, the global RNGs, the run's clocks, the
         last evaluation, the callbacks' state and ``extra_state``. Metrics not yet logged are
         logged first, so the CSVs hold every row up to the checkpoint's frames; ``interrupted``
-        (a signal's checkpoint, off the cadences): they are kept in the checkpoint instead, so
-        that the resumed run logs the rows an uninterrupted one does."""
+        (a signal's checkpoint where no checkpoint was due): they are kept in the checkpoint
+        instead, so that the resumed run logs the rows an uninterrupted one does."""
         if self._window.sums and not interrupted:
             self._flush()
         return self.store.save_checkpoint(self._state(), self.algo.frames)

@@ -23,7 +23,6 @@ MAX_STEPS = 10_000  # for envs without a time limit
 
 def make_render_env(cfg: EnvConfig, seed: int | None = None) -> EnvBase:
     """One copy of ``cfg`` that renders ``rgb_array`` frames; a clear error if it cannot."""
-    os.environ.setdefault("SDL_AUDIODRIVER", "dummy")  # pygame-drawn envs: no sound card noise
     if not os.environ.get("XDG_RUNTIME_DIR"):  # else SDL prints an error line about it
         os.environ["XDG_RUNTIME_DIR"] = tempfile.mkdtemp(prefix="rlpipe-runtime-")
     with warnings.catch_warnings():  # gymnasium warns about unknown render modes; we say it once

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 from collections.abc import Callable
@@ -12,6 +13,19 @@ from typing import Any
 import pytest
 
 TINY = ["progress=false", "total_frames=200", "eval_every=100", "eval_episodes=2"]
+# a finished tiny DQN run (checkpoints at 100 and 200): the tampering and ownership share
+BASE = [
+    "progress=false",
+    "total_frames=200",
+    "eval_every=100",
+    "checkpoint_every=100",
+    "eval_episodes=2",
+    "algo.learning_starts=64",
+    "algo.batch_size=32",
+    "algo.frames_per_batch=20",
+    "env.num_envs=2",
+]
+NEWEST = "ckpt_000000000200.pt"
 
 
 def run_module(
@@ -70,3 +84,22 @@ def image_env_id() -> str:
             ),
         )
     return env_id
+
+
+@pytest.fixture(scope="module")
+def finished_run(tmp_path_factory) -> Path:
+    """A finished tiny DQN run (checkpoints at 100 and 200 frames), made once per module."""
+    run_dir = tmp_path_factory.mktemp("finished") / "run"
+    result = run_module("rlpipe", *BASE, f"hydra.run.dir={run_dir}", cwd=run_dir.parent)
+    assert result.returncode == 0, result.stderr
+    assert sorted(p.name for p in (run_dir / "checkpoints").glob("ckpt_*.pt")) == [
+        "ckpt_000000000100.pt",
+        NEWEST,
+    ]
+    return run_dir
+
+
+@pytest.fixture
+def run_copy(tmp_path, finished_run) -> Path:
+    """A copy of the finished run of its own, ``tmp_path/run``."""
+    return Path(shutil.copytree(finished_run, tmp_path / "run"))

@@ -229,6 +229,9 @@ def _tracked_run(rlpipe_cli, tmp_path: Path, backend: str) -> Path:
     run_dir = tmp_path / "run"
     done = rlpipe_cli("progress=false", f"logger={backend}", *TRACKED, run_dir=run_dir)
     assert done.returncode == 0, done.stderr
+    if backend == "tensorboard":  # rlpipe's own lines only (no "ALSA lib ... Unknown PCM")
+        lines = (done.stdout + done.stderr).splitlines()
+        assert lines and all(line.startswith("rlpipe: ") for line in lines), lines
     return run_dir
 
 
