@@ -27,6 +27,7 @@ PLUGIN_EXTRAS = {
     "joblib": "joblib",
     "submitit_local": "submitit",
     "submitit_slurm": "submitit",
+    "ray": "ray",
     "optuna": "optuna",
 }
 

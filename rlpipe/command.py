@@ -42,7 +42,7 @@ def main() -> None:
         if {"-c", "--cfg"} & set(argv):
             if show_job_config(argv):
                 return  # printed; other --cfg uses are Hydra's to print, without calling the job
-        elif not {"-m", "--multirun"} & set(argv):  # a sweep's jobs are checked one by one
+        elif not is_sweep(argv):  # a sweep's jobs are checked one by one
             validate_overrides(argv)  # every config error, before Hydra makes a run dir
     except USER_ERRORS as err:
         fail(err)
@@ -79,6 +79,13 @@ def resume_in_place(argv: list[str]) -> list[str]:
         return argv
     check(Path(resume[-1]).is_dir(), f"run directory {resume[-1]} does not exist")
     return [*argv, f"hydra.run.dir={resume[-1]}"]
+
+
+def is_sweep(argv: Sequence[str]) -> bool:
+    """Whether ``argv`` runs a sweep: ``-m``, or a ``+sweep=`` search (``hydra.mode=MULTIRUN``)."""
+    return bool({"-m", "--multirun"} & set(argv)) or any(
+        re.match(r"^\+{0,2}sweep=", arg) for arg in argv
+    )
 
 
 def quote_letters(argv: list[str]) -> list[str]:

@@ -47,6 +47,15 @@ def run_module(
     )
 
 
+def needs_extra(module: str, extra: str) -> Any:
+    """``module``, imported; where it is missing the test is skipped with the command that
+    installs the rlpipe extra bringing it."""
+    return pytest.importorskip(
+        module,
+        reason=f'needs the {extra} extra ({module}): pip install torch==2.13.0 -e ".[{extra}]"',
+    )
+
+
 def assert_one_error_line(
     main: Callable[[list[str]], Any], argv: list[str], message: str, capsys: Any
 ) -> None:

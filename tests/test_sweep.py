@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import csv
 import json
+import os
+import re
 import shutil
 from pathlib import Path
 
 import pytest
 import yaml
-from conftest import TINY, run_module
+from conftest import TINY, needs_extra, run_module
 from hydra.errors import ConfigCompositionException, MissingConfigException
 
 from rlpipe.cli import format_error
@@ -123,6 +125,41 @@ def test_summary_aggregates_each_group_of_seeds(tmp_path):
     assert "| env=pendulum | 1 | -150.00 | -150.00 | – (no known target) |" in markdown
 
 
+def test_two_sweeps_into_one_dir_list_each_job_once(tmp_path):
+    """The second sweep's jobs resolve to the first's dirs: one is the same run (it reports
+    its result), the other another run (rejected, shown apart; nothing of the first changes)."""
+    proc, sweep = run_sweep(tmp_path, *FAST, "seed=0,1")
+    assert proc.returncode == 0, proc.stderr
+    first = (sweep / "1" / "summary.json").read_bytes()
+    proc = run_module("rlpipe", "-m", *FAST, "seed=0,2", f"hydra.sweep.dir={sweep}", cwd=tmp_path)
+    assert proc.returncode == 1, proc.stderr
+    assert "sweep of 2 jobs, 0 failed, 1 rejected" in proc.stdout, proc.stdout
+    rows = read_csv(sweep / "summary.csv")
+    assert [(r["job"], r["overrides"].split()[-1], r["status"]) for r in rows] == [
+        ("0", "seed=0", "ok"),
+        ("1", "seed=1", "ok"),
+        ("1", "seed=2", "rejected"),
+    ]
+    assert (sweep / "1" / "summary.json").read_bytes() == first
+
+
+def test_ray_launcher_runs_the_jobs_as_ray_tasks(tmp_path):
+    """hydra/launcher=ray (hydra-ray-launcher): each job a Ray task on a Ray started here
+    (hydra.launcher.ray.init.address=<head>:6379 for a cluster's)."""
+    needs_extra("hydra_plugins.hydra_ray_launcher", "ray")
+    options = [
+        "hydra.launcher.ray.init.num_cpus=2",
+        "+hydra.launcher.ray.init.include_dashboard=false",
+    ]
+    proc, sweep = run_sweep(tmp_path, "hydra/launcher=ray", *options, *FAST, "seed=0,1")
+    assert proc.returncode == 0, proc.stderr
+    rows = read_csv(sweep / "summary.csv")
+    assert [(r["job"], r["status"]) for r in rows] == [("0", "ok"), ("1", "ok")]
+    assert "Ray Launcher is launching 2 jobs" in proc.stdout + proc.stderr
+    workers = re.findall(r"\(_run_job pid=(\d+)\)", proc.stdout + proc.stderr)
+    assert workers and str(os.getpid()) not in workers  # the jobs ran in Ray's worker processes
+
+
 def test_a_failed_job_is_reported_and_the_others_run(tmp_path):
     proc, sweep = run_sweep(tmp_path, *FAST, *ONE_FAILS)
     assert proc.returncode == 1, proc.stderr  # the sweep ran, but not every job succeeded
@@ -187,7 +224,7 @@ def test_composition_error_keeps_its_reason():
 
 
 def test_joblib_launcher_runs_jobs_in_parallel_processes(tmp_path):
-    pytest.importorskip("hydra_plugins.hydra_joblib_launcher")
+    needs_extra("hydra_plugins.hydra_joblib_launcher", "joblib")
     with_bars = [arg for arg in FAST if arg != "progress=false"]
     proc, sweep = run_sweep(
         tmp_path, "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", *with_bars, *ONE_FAILS
@@ -200,17 +237,19 @@ def test_joblib_launcher_runs_jobs_in_parallel_processes(tmp_path):
     assert rows[1]["error"] == "algo.lr must be a finite number > 0, got -1.0"
 
 
-def test_optuna_sweeper_maximises_the_returned_eval_mean(tmp_path):
-    pytest.importorskip("hydra_plugins.hydra_optuna_sweeper")
+@pytest.mark.parametrize("sampler", ["random", "grid"])
+def test_optuna_sweeper_maximises_the_returned_eval_mean(tmp_path, sampler):
+    """rlpipe's Optuna sweeper on current Optuna: a failed trial is recorded and the search
+    goes on (the grid's search ends with its grid, whatever n_trials says)."""
+    optuna = needs_extra("optuna", "optuna")
+    assert int(optuna.__version__.split(".")[0]) >= 4
     proc = run_module(
         "rlpipe",
         "+sweep=dqn_cartpole",  # hydra.mode=MULTIRUN: no -m
         *FAST,
-        # with this seed, random sampling picks -1 then 0.001 (the grid sampler cannot be used: the
-        # sweeper crashes when the grid's last trial fails)
-        "hydra/sweeper/sampler=random",
-        "hydra.sweeper.sampler.seed=0",
-        "hydra.sweeper.n_trials=2",
+        f"hydra/sweeper/sampler={sampler}",
+        *(["hydra.sweeper.sampler.seed=0"] if sampler == "random" else []),
+        f"hydra.sweeper.n_trials={2 if sampler == 'random' else 5}",
         "hydra.sweeper.params=null",
         "algo.lr=choice(0.001, -1)",
         f"hydra.sweep.dir={tmp_path / 'sweep'}",
@@ -219,6 +258,7 @@ def test_optuna_sweeper_maximises_the_returned_eval_mean(tmp_path):
     sweep = tmp_path / "sweep"
     assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr  # a trial failed
     rows = {r["overrides"].split()[0]: r for r in read_csv(sweep / "summary.csv")}
+    assert len(rows) == 2 and "[I " not in proc.stderr  # no Optuna INFO lines
     assert rows["algo.lr=-1"]["status"] == "failed"
     ok = rows["algo.lr=0.001"]
     assert ok["status"] == "ok"
