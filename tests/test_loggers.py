@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import TINY
+from conftest import TINY, needs_extra
 from torchrl.record.loggers import CSVLogger, TensorboardLogger
 
 from rlpipe import LoggerConfig, make_logger
@@ -60,7 +60,7 @@ def test_require_extra_video(monkeypatch: pytest.MonkeyPatch) -> None:
 
 
 def test_tensorboard_writes_events_and_csv(tmp_path: Path) -> None:
-    pytest.importorskip("tensorboard")
+    needs_extra("tensorboard", "tensorboard")
     try:
         require_extra("tensorboard", "logger=tensorboard")
     except RlpipeError as err:
@@ -236,7 +236,7 @@ def _tracked_run(rlpipe_cli, tmp_path: Path, backend: str) -> Path:
 
 
 def test_tensorboard_holds_the_config_name_curve_and_loss_cadence(tmp_path, rlpipe_cli) -> None:
-    pytest.importorskip("tensorboard")
+    needs_extra("tensorboard", "tensorboard")
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
     from tensorboard.plugins.hparams import plugin_data_pb2
 
@@ -266,7 +266,7 @@ def test_tensorboard_holds_the_config_name_curve_and_loss_cadence(tmp_path, rlpi
 
 
 def test_mlflow_holds_the_config_name_tags_and_files(tmp_path, rlpipe_cli) -> None:
-    pytest.importorskip("mlflow")
+    needs_extra("mlflow", "mlflow")
     import mlflow
 
     run_dir = _tracked_run(rlpipe_cli, tmp_path, "mlflow")
@@ -279,7 +279,7 @@ def test_mlflow_holds_the_config_name_tags_and_files(tmp_path, rlpipe_cli) -> No
 
 
 def test_wandb_holds_the_config_name_tags_and_files(tmp_path, rlpipe_cli) -> None:
-    pytest.importorskip("wandb")
+    needs_extra("wandb", "wandb")
     import shutil
     import subprocess
 

@@ -210,7 +210,11 @@ def test_plot_read_only_run_dir(
     assert not (copy / "curves.png").exists()
 
 
-@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into a chmod 0o555 directory")
+@pytest.mark.skipif(
+    os.geteuid() == 0,
+    reason="root writes into a chmod 0o555 dir: run pytest as another user for this one; the "
+    "read-only case runs for root too (test_plot_read_only_run_dir, simulated)",
+)
 def test_plot_chmod_read_only_run_dir(
     runs: list[Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -148,7 +148,7 @@ def test_ray_launcher_runs_the_jobs_as_ray_tasks(tmp_path):
     (hydra.launcher.ray.init.address=<head>:6379 for a cluster's)."""
     needs_extra("hydra_plugins.hydra_ray_launcher", "ray")
     options = [
-        "hydra.launcher.ray.init.num_cpus=2",
+        "+hydra.launcher.ray.init.num_cpus=2",
         "+hydra.launcher.ray.init.include_dashboard=false",
     ]
     proc, sweep = run_sweep(tmp_path, "hydra/launcher=ray", *options, *FAST, "seed=0,1")
