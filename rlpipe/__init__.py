@@ -65,6 +65,10 @@ __version__ = "0.1.0"
 # TorchRL logs INFO lines (in colour) to stdout from its import on, with a handler it resets then:
 # rlpipe's console is its progress bar and summary line. WARNING unless you set the variable.
 os.environ.setdefault("RL_LOGGING_LEVEL", "WARNING")
+# SDL (pygame: gymnasium's renderers, moviepy's preview, which TensorBoard's video support
+# imports) opens the sound card at import, and without one ALSA prints "Unknown PCM default"
+# lines: rlpipe plays no sound. Unless you set the variable.
+os.environ.setdefault("SDL_AUDIODRIVER", "dummy")
 
 # public name -> the module that defines it
 _MODULES = {

@@ -17,6 +17,17 @@ class Window:
         self.sums[key] += value
         self.counts[key] += 1
 
+    def state(self) -> dict[str, dict[str, float]]:
+        """The window's sums and counts, as plain data (a checkpoint keeps them)."""
+        return {"sums": dict(self.sums), "counts": dict(self.counts)}
+
+    def load(self, state: dict[str, dict[str, float]]) -> None:
+        """Take back what :meth:`state` returned (an empty dict: an empty window)."""
+        self.sums.clear()
+        self.counts.clear()
+        self.sums.update(state.get("sums", {}))
+        self.counts.update(state.get("counts", {}))
+
     def pop(self) -> dict[str, float]:
         means = {k: self.sums[k] / self.counts[k] for k in self.sums}
         self.sums.clear()

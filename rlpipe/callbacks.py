@@ -23,15 +23,24 @@ class VideoCallback(Callback):
     """Records one greedy episode to ``<run dir>/videos/eval_<frames>.mp4`` at evaluations.
 
     At the first evaluation past each multiple of ``every`` frames (1: every evaluation), and
-    always after the final one. TensorBoard and W&B loggers get the video too.
+    always after the final one; every episode starts from ``seed`` (None: the env's own
+    episodes). TensorBoard and W&B loggers get the video too.
     """
 
     def __init__(self, env_cfg: EnvConfig, every: int, seed: int | None = None) -> None:
         require_extra("video", "video=true")
         self.env = make_render_env(env_cfg, seed=seed)
+        self.seed = seed
         self.every = every
         self.next_due = every
         self.last_frames = -1
+
+    def state_dict(self) -> dict[str, int]:
+        return {"next_due": self.next_due, "last_frames": self.last_frames}
+
+    def load_state_dict(self, state: dict[str, int]) -> None:
+        self.next_due = int(state.get("next_due", self.every))
+        self.last_frames = int(state.get("last_frames", -1))
 
     def on_eval(self, runner: Runner, result: EvalResult) -> None:
         if runner.algo.frames >= self.next_due:
@@ -45,6 +54,8 @@ class VideoCallback(Callback):
 
     def record(self, runner: Runner) -> Path:
         """Record, write and log one episode of the runner's current greedy policy."""
+        if self.seed is not None:
+            self.env.set_seed(self.seed)
         frames = record_episode(runner.algo.policy, self.env)
         self.last_frames = runner.algo.frames
         name = f"eval_{runner.algo.frames:012d}.mp4"

@@ -6,6 +6,7 @@ written or read, not with this module."""
 from __future__ import annotations
 
 import io
+import os
 import pickle
 import re
 import zipfile
@@ -15,7 +16,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from rlpipe.errors import RlpipeError
-from rlpipe.files import write_atomic
+from rlpipe.files import open_regular, write_atomic
 
 if TYPE_CHECKING:
     import torch
@@ -62,14 +63,23 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     """Load a checkpoint with ``weights_only=True``: tensors and plain containers only.
 
     A file carrying other pickled objects (which could run code when unpickled) is refused
-    with :class:`UnsafeCheckpoint`; a damaged file raises :class:`CorruptCheckpoint`.
+    with :class:`UnsafeCheckpoint`; a damaged file raises :class:`CorruptCheckpoint`; a link or
+    special file in its place, :class:`~rlpipe.files.NotOwnFile` (nothing is read through it).
     """
+    with os.fdopen(open_regular(path), "rb") as file:
+        state = _load(file, path, map_location)
+    _known_good.add(_identity(Path(path)))
+    return state
+
+
+def _load(file: io.BufferedReader, path: str | Path, map_location: Any) -> dict[str, Any]:
     import torch
 
-    if not zipfile.is_zipfile(path):  # torch.save writes a zip archive; this is not one
+    if not zipfile.is_zipfile(file):  # torch.save writes a zip archive; this is not one
         raise CorruptCheckpoint(f"checkpoint {path} is damaged (not a torch zip archive)")
+    file.seek(0)
     try:
-        state = torch.load(path, map_location=map_location, weights_only=True)
+        return torch.load(file, map_location=map_location, weights_only=True)
     except pickle.UnpicklingError as err:
         found = re.search(r"GLOBAL (\S+)", str(err))
         raise UnsafeCheckpoint(
@@ -80,8 +90,6 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     except Exception as err:  # noqa: BLE001  (torch raises many kinds on a damaged file)
         reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         raise CorruptCheckpoint(f"checkpoint {path} is damaged ({reason})") from err
-    _known_good.add(_identity(Path(path)))
-    return state
 
 
 def loads(path: Path) -> bool:
@@ -96,7 +104,7 @@ def loads(path: Path) -> bool:
 
 
 def _identity(path: Path) -> tuple[str, int, int]:
-    stat = path.stat()
+    stat = os.lstat(path)
     return str(path), stat.st_size, stat.st_mtime_ns
 
 

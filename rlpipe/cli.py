@@ -4,6 +4,7 @@ shared opening, and one-line error reporting."""
 from __future__ import annotations
 
 import dataclasses
+import importlib
 import importlib.resources
 import re
 import sys
@@ -17,6 +18,7 @@ from omegaconf import MISSING, DictConfig, OmegaConf, open_dict
 from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
 
 from rlpipe.config import Config, EnvConfig
+from rlpipe.console import say
 from rlpipe.errors import RlpipeError, check
 from rlpipe.outcomes import Interrupted
 from rlpipe.registry import ALGORITHMS
@@ -27,6 +29,7 @@ PLUGIN_EXTRAS = {
     "joblib": "joblib",
     "submitit_local": "submitit",
     "submitit_slurm": "submitit",
+    "ray": "ray",
     "optuna": "optuna",
 }
 
@@ -38,6 +41,21 @@ def register_configs() -> None:
     store.store(name="rlpipe_config", node=Config(env=EnvConfig(id=MISSING), algo=MISSING))
     for name in ALGORITHMS:  # their configs only: no algorithm module (nor torch) is imported
         store.store(group="schema/algo", name=name, node=ALGORITHMS.config(name))
+    # hydra/sweeper=optuna: Hydra's plugin scan finds it in an installed rlpipe, not in an
+    # editable one (whose import hook the scan does not see); importing it stores its configs
+    from rlpipe.optuna_search import PLUGIN
+
+    importlib.import_module(PLUGIN)
+
+
+def register_sweeper() -> None:
+    """Hand Hydra rlpipe's Optuna sweeper class (before a sweep: Hydra's first use of its plugins
+    scans them all)."""
+    from hydra.core.plugins import Plugins
+
+    from rlpipe.optuna_search import PLUGIN
+
+    Plugins.instance().register(importlib.import_module(PLUGIN).OptunaSweeper)
 
 
 def unknown_keys(node: DictConfig, prefix: str = "") -> Iterator[str]:
@@ -193,7 +211,7 @@ def fail(err: BaseException) -> NoReturn:
     """Print ``rlpipe: error: <one line>`` to stderr and exit with code 2; an interrupted run
     prints how to resume and exits with 128 + the signal number."""
     if isinstance(err, Interrupted):
-        print(f"rlpipe: {err}", file=sys.stderr)
+        say(f"rlpipe: {err}", err=True)
         sys.exit(err.exit_code)
     print(f"rlpipe: error: {format_error(err)}", file=sys.stderr)
     sys.exit(2)

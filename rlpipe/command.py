@@ -14,10 +14,12 @@ import sys
 from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
+from typing import Any, ClassVar
 
 import hydra
 from hydra import compose, initialize_config_module
 from hydra.core.hydra_config import HydraConfig
+from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
@@ -27,26 +29,32 @@ from rlpipe.cli import (
     fail,
     open_entries,
     register_configs,
+    register_sweeper,
     to_config,
     tuned_notice,
     without_hydra,
 )
+from rlpipe.console import say
 from rlpipe.errors import RlpipeError, check
 from rlpipe.outcomes import RunResult
 from rlpipe.rundir import RunDir
 from rlpipe.sweep import SweepStopped, SweepSummary, resume_sweep, run_sweep_job
+from rlpipe.sweep_summary import REJECTED
 
 
 def main() -> None:
     """Run the command on ``sys.argv``; user errors end in one line and exit 2."""
     register_configs()
     try:
-        sys.argv[1:] = argv = open_entries(resume_in_place(resume_sweep(sys.argv[1:])))
+        argv = open_entries(resume_in_place(resume_sweep(sys.argv[1:])))
+        sys.argv[1:] = argv = quote_letters(argv)
         check_launcher(argv)
         if {"-c", "--cfg"} & set(argv):
             if show_job_config(argv):
                 return  # printed; other --cfg uses are Hydra's to print, without calling the job
-        elif not {"-m", "--multirun"} & set(argv):  # a sweep's jobs are checked one by one
+        elif is_sweep(argv):  # a sweep's jobs are checked one by one
+            register_sweeper()
+        else:
             validate_overrides(argv)  # every config error, before Hydra makes a run dir
     except USER_ERRORS as err:
         fail(err)
@@ -67,6 +75,8 @@ def main() -> None:
         print(f"\n{stop.table}")
         print(f"rlpipe: {stop.message}", file=sys.stderr)
         sys.exit(stop.exit_code)
+    finally:
+        NewRunDir.remove_if_empty()
     if SweepSummary.failed_jobs:
         sys.exit(1)  # the sweep's summary, just printed, names the failed jobs and their errors
 
@@ -81,6 +91,47 @@ def resume_in_place(argv: list[str]) -> list[str]:
         return argv
     check(Path(resume[-1]).is_dir(), f"run directory {resume[-1]} does not exist")
     return [*argv, f"hydra.run.dir={resume[-1]}"]
+
+
+def is_sweep(argv: Sequence[str]) -> bool:
+    """Whether ``argv`` runs a sweep: ``-m``, or a ``+sweep=`` search (``hydra.mode=MULTIRUN``)."""
+    return bool({"-m", "--multirun"} & set(argv)) or any(
+        re.match(r"^\+{0,2}sweep=", arg) for arg in argv
+    )
+
+
+def quote_letters(argv: list[str]) -> list[str]:
+    """Quote for Hydra the values its grammar takes only quoted: letters beyond ASCII (a run dir
+    ``hydra.run.dir=/data/résumé`` becomes ``hydra.run.dir='/data/résumé'``)."""
+    quoted = []
+    for arg in argv:
+        key, eq, value = arg.partition("=")
+        if eq and not value.isascii() and not re.search(r"""['"\\\[\]{}]""", value):
+            arg = f"{key}='{value}'"
+        quoted.append(arg)
+    return quoted
+
+
+class NewRunDir(Callback):
+    """Hydra callback: before Hydra makes a run's dir, note which of it and its parents are
+    missing, so that :meth:`remove_if_empty` can take away those still empty when the command
+    ends (a run that failed before writing anything); nothing that existed before is removed."""
+
+    missing: ClassVar[list[Path]] = []  # deepest first
+
+    def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
+        run_dir = Path(config.hydra.run.dir).absolute()
+        NewRunDir.missing = [d for d in (run_dir, *run_dir.parents) if not os.path.lexists(d)]
+
+    @classmethod
+    def remove_if_empty(cls) -> None:
+        """Remove the noted dirs that are empty, deepest first (stopping at one that is not)."""
+        for directory in cls.missing:
+            try:
+                directory.rmdir()
+            except OSError:  # not empty (the run wrote), or not ours to remove
+                break
+        cls.missing = []
 
 
 def check_launcher(argv: Sequence[str]) -> None:
@@ -142,7 +193,7 @@ def task(cfg: DictConfig) -> float | None:
         config = to_config(cfg)  # checked before torch loads (with the pipeline, below)
         notice = tuned_notice(hydra_cfg.runtime.choices)
         if notice:
-            print(notice)
+            say(notice)
         from rlpipe.pipeline import train
 
         if "BasicLauncher" not in hydra_cfg.launcher.get("_target_", "BasicLauncher"):
@@ -155,7 +206,7 @@ def task(cfg: DictConfig) -> float | None:
         run.write_hydra_record(cfg, hydra_cfg)
 
     if hydra_cfg.mode == RunMode.MULTIRUN:
-        rejected = Path(hydra_cfg.sweep.dir) / "rejected" / str(hydra_cfg.job.num)
+        rejected = Path(hydra_cfg.sweep.dir) / REJECTED / str(hydra_cfg.job.num)
         result = run_sweep_job(
             job, run_dir, record=record, rejected_dir=rejected, sweep_dir=hydra_cfg.sweep.dir
         )
@@ -166,5 +217,5 @@ def task(cfg: DictConfig) -> float | None:
             result = job()
         except USER_ERRORS as err:
             fail(err)  # here rather than in main: Hydra would add a line of its own
-    print(f"rlpipe: {result.summary_line()}")
+    say(f"rlpipe: {result.summary_line()}")
     return result.eval_mean

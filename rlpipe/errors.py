@@ -26,9 +26,9 @@ def check(condition: bool, message: str) -> None:
 
 # rule name -> (test, what a value must be)
 RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
-    "positive": (lambda v: math.isfinite(v) and v > 0, "must be > 0"),
+    "positive": (lambda v: math.isfinite(v) and v > 0, "must be a finite number > 0"),
     "at_least_one": (lambda v: v >= 1, "must be >= 1"),
-    "non_negative": (lambda v: math.isfinite(v) and v >= 0, "must be >= 0"),
+    "non_negative": (lambda v: math.isfinite(v) and v >= 0, "must be a finite number >= 0"),
     "discount": (lambda v: 0 < v <= 1, "must be in (0, 1]"),
     "fraction": (lambda v: 0 <= v < 1, "must be in [0, 1)"),
     "sizes": (lambda v: all(h >= 1 for h in v), "must be positive"),

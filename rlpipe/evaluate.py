@@ -36,7 +36,7 @@ from rlpipe.config import EnvConfig
 from rlpipe.envs import make_env
 from rlpipe.episodes import EvalResult, eval_envs, evaluate
 from rlpipe.errors import check
-from rlpipe.files import check_writable
+from rlpipe.files import check_writable, write_atomic
 from rlpipe.heuristic import heuristic_policy, naive_policy, random_policy
 from rlpipe.loggers import require_extra
 from rlpipe.pipeline import load_run
@@ -170,7 +170,7 @@ def run(cfg: EvaluateConfig) -> dict[str, Any]:
             summary["video"] = str(video)
             summary["video_frames"] = [len(frames) for frames in episodes]
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(summary, indent=2) + "\n")
+    write_atomic(path, (json.dumps(summary, indent=2) + "\n").encode())
     summary["json"] = str(path)
     return summary
 

@@ -4,6 +4,7 @@ comparisons of many (``python -m rlpipe.plot``). Reading the metric CSVs and gro
 
 from __future__ import annotations
 
+import io
 import os
 import textwrap
 from collections.abc import Sequence
@@ -14,9 +15,11 @@ from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
 from rlpipe.errors import check
+from rlpipe.files import write_atomic
 from rlpipe.metrics import EVAL_METRIC
 from rlpipe.rundir import RunDir
 from rlpipe.runs import Group
+from rlpipe.stats import AGGREGATES, bootstrap_band
 
 WINDOW = 100  # episodes in the training-return moving average (as the DQN notebook plotted)
 
@@ -43,6 +46,14 @@ def _title(run_dir: Path) -> str:
 
 def plot_run(run_dir: str | Path, path: str | Path | None = None) -> Path:
     """Draw ``run_dir``'s greedy eval return and training episode return into ``curve.png``."""
+    path = Path(path) if path else Path(run_dir) / RunDir.CURVE
+    save_figure(run_figure(run_dir), path)
+    return path
+
+
+def run_figure(run_dir: str | Path) -> Figure:
+    """The figure :func:`plot_run` saves: the greedy eval mean with its ± std band (clipped to
+    each evaluation's lowest and highest return), the training returns and their average."""
     run_dir = Path(run_dir)
     run = RunDir(run_dir)
     frames, mean = run.metric(EVAL_METRIC)
@@ -56,7 +67,8 @@ def plot_run(run_dir: str | Path, path: str | Path | None = None) -> Path:
     _, std = run.metric("eval/return_std")
     left.plot(frames, mean, marker="o", color="C0", label="greedy eval mean")
     if len(std) == len(mean):
-        left.fill_between(frames, mean - std, mean + std, color="C0", alpha=0.2, label="± std")
+        low, high = _within_returns(run, mean - std, mean + std)
+        left.fill_between(frames, low, high, color="C0", alpha=0.2, label="± std, within min/max")
     _label(left, "greedy evaluation return")
     ep_frames, returns = run.metric("train/episode_return")
     if len(returns):
@@ -65,9 +77,27 @@ def plot_run(run_dir: str | Path, path: str | Path | None = None) -> Path:
         right.plot(ep_frames, average, color="C3", lw=2, label=f"{WINDOW}-episode moving average")
     _label(right, "training episode return")
     fig.suptitle(_title(run_dir), fontsize=10)
-    path = Path(path) if path else run_dir / RunDir.CURVE
-    fig.savefig(path)
-    return path
+    return fig
+
+
+def _within_returns(
+    run: RunDir, low: np.ndarray, high: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The band ``low``-``high`` clipped to each evaluation's lowest and highest return (no
+    band shows returns the env cannot give, e.g. below Acrobot's -500)."""
+    _, lowest = run.metric("eval/return_min")
+    _, highest = run.metric("eval/return_max")
+    if len(lowest) == len(low) == len(highest):
+        return np.maximum(low, lowest), np.minimum(high, highest)
+    return low, high
+
+
+def save_figure(fig: Figure, path: Path) -> None:
+    """Write ``fig`` to ``path`` (its format by the suffix) atomically: a link at ``path`` is
+    replaced, never written through."""
+    data = io.BytesIO()
+    fig.savefig(data, format=path.suffix.lstrip(".") or "png")
+    write_atomic(path, data.getvalue())
 
 
 def _label(ax: Axes, title: str) -> None:
@@ -80,27 +110,6 @@ def _label(ax: Axes, title: str) -> None:
 
 
 # ---- many runs: seeds grouped, mean/IQM line with a bootstrap band -------------------------
-
-
-def iqm(values: np.ndarray, axis: int = 0) -> np.ndarray:
-    """Interquartile mean: the mean of the middle 50% of ``values`` along ``axis``."""
-    ordered = np.sort(values, axis=axis)
-    n = ordered.shape[axis]
-    cut = n // 4
-    return np.take(ordered, range(cut, n - cut), axis=axis).mean(axis=axis)
-
-
-AGGREGATES = {"mean": lambda v, axis=0: v.mean(axis=axis), "iqm": iqm}
-
-
-def bootstrap_band(
-    values: np.ndarray, aggregate: str, samples: int = 2000, seed: int = 0
-) -> tuple[np.ndarray, np.ndarray]:
-    """95% percentile-bootstrap interval of ``aggregate`` over runs (rows of ``values``)."""
-    rng = np.random.default_rng(seed)
-    picks = rng.integers(0, len(values), size=(samples, len(values)))
-    stats = AGGREGATES[aggregate](values[picks], axis=1)  # (samples, T)
-    return np.percentile(stats, 2.5, axis=0), np.percentile(stats, 97.5, axis=0)
 
 
 def aligned(runs: Sequence[Path], metric: str) -> tuple[np.ndarray, np.ndarray]:
@@ -131,11 +140,11 @@ def plot_groups(
     fig = groups_figure(groups, metric=metric, aggregate=aggregate, title=title)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
+    save_figure(fig, path)
     written = [path]
     if svg:
         written.append(path.with_suffix(".svg"))
-        fig.savefig(written[-1])
+        save_figure(fig, written[-1])
     return written
 
 
@@ -181,8 +190,18 @@ def groups_figure(
     for ax in axes[len(panels) :]:
         ax.set_visible(False)
     what = METRIC_NAMES.get(metric, metric)
-    fig.suptitle(title or f"{what}: {aggregate} over seeds, 95% bootstrap CI", fontsize=11)
+    fig.suptitle(title or f"{what}: {_band_title(groups, aggregate)}", fontsize=11)
     return fig
+
+
+def _band_title(groups: Sequence[Group], aggregate: str) -> str:
+    """What the lines and bands are: a band only where a line has two seeds or more."""
+    seeds = {len(group.runs) for group in groups}
+    if seeds == {1}:
+        return "one seed per line (no confidence band)"
+    if 1 in seeds:
+        return f"{aggregate} over seeds, 95% bootstrap CI (lines of one seed: no band)"
+    return f"{aggregate} over seeds, 95% bootstrap CI"
 
 
 def _legend(label: str, *, several_envs: bool) -> str:

@@ -29,6 +29,7 @@ from torchrl.record.loggers import (
 
 from rlpipe.config import NOT_FINGERPRINTED, Config, LoggerConfig, flatten
 from rlpipe.errors import RlpipeError
+from rlpipe.files import NotOwnFile, open_append, reached_directly
 from rlpipe.rundir import RunDir
 
 MAX_OPEN_FILES = 64  # CsvLogger keeps at most this many metric files open (runs log < 30)
@@ -105,7 +106,9 @@ class CsvLogger(Logger):
                 self._close(next(iter(self._files)))
             path = self.path(name)
             path.parent.mkdir(parents=True, exist_ok=True)
-            file = FileIO(path, "a")
+            if not reached_directly(self.log_dir, path):
+                raise NotOwnFile(f"{path} is reached through a symbolic link: not written")
+            file = open_append(path, buffering=0)  # itself: not a link, FIFO or hard link
         self._files[name] = file  # now the most recently used
         return file
 

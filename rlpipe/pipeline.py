@@ -11,12 +11,12 @@ from pathlib import Path
 
 import torch
 from torch import nn
-from tqdm.auto import tqdm
 
 from rlpipe.algos import make_algorithm
 from rlpipe.algos.base import Algorithm
 from rlpipe.callbacks import make_callbacks
 from rlpipe.config import RUN_KEYS, Config
+from rlpipe.console import say
 from rlpipe.envs import make_env
 from rlpipe.episodes import eval_envs
 from rlpipe.loggers import make_logger, run_card
@@ -60,13 +60,12 @@ def train(
     frames = 0 if start is None else start.frames
     seed_everything(cfg.seed)
     set_threads(cfg.threads, device)
+    eval_seed = (cfg.seed + 10_000) % SEED_RANGE  # every evaluation: these episodes' starts
     with ExitStack() as stack:
-        eval_env = make_env(
-            cfg.env, num_envs=eval_envs(cfg.eval_episodes), seed=(cfg.seed + 10_000) % SEED_RANGE
-        )
+        eval_env = make_env(cfg.env, num_envs=eval_envs(cfg.eval_episodes), seed=eval_seed)
         stack.callback(eval_env.close)
-        algo = make_algorithm(  # a resumed run meets fresh episodes: the seed moves with the frames
-            partial(make_env, cfg.env, seed=(cfg.seed + frames) % SEED_RANGE),
+        algo = make_algorithm(  # a resumed run restarts its episodes as the checkpoint says
+            partial(make_env, cfg.env, seed=cfg.seed),
             cfg.algo,
             device=device,
             network=network,
@@ -82,15 +81,14 @@ def train(
             callbacks=make_callbacks(cfg),  # before the logger: a bad video setting writes nothing
             progress=cfg.progress,
             config=cfg,  # config.yaml, and in every checkpoint
+            eval_seed=eval_seed,
         )
         if start is not None:
             with start.applying():
                 runner.restore(start.state)
         with run.session(cfg, frames, cfg.keep_checkpoints):  # checked: from here on it is written
             if start is not None and not runner.finished:  # a finished run says so itself
-                tqdm.write(
-                    f"rlpipe: resuming {run.path} from {start.path.name} at {frames:,} frames"
-                )
+                say(f"rlpipe: resuming {run.path} from {start.path.name} at {frames:,} frames")
             if on_start is not None:
                 on_start(run)
             runner.logger = make_logger(cfg.logger, run.path, run_card(cfg, run.overrides()))

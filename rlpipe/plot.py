@@ -2,9 +2,11 @@
 
 Draws learning curves of any set of run dirs or multirun sweep dirs: runs that differ only by
 seed form a group, drawn as the mean (``agg=mean``) or interquartile mean (``agg=iqm``) over
-its seeds with a 95% bootstrap confidence band; groups are labelled by the overrides that set
-them apart. Prints the path of the PNG (and SVG with ``svg=true``). An argument naming an
-existing path is a directory even if it holds ``=`` (``outputs/lr=0.1``).
+its seeds with a 95% bootstrap confidence band (a group of one seed: no band); groups are
+labelled by the overrides that set them apart. Writes ``curves.png`` beside the data (in DIR, or
+in the directory holding every DIR) unless ``out=`` says where, and prints its path (and the
+SVG's with ``svg=true``). An argument naming an existing path is a directory even if it holds
+``=`` (``outputs/lr=0.1``).
 """
 
 from __future__ import annotations
@@ -15,10 +17,11 @@ from pathlib import Path
 
 from rlpipe.cli import run_entry_point
 from rlpipe.errors import RlpipeError, check
-from rlpipe.figures import AGGREGATES, plot_groups
+from rlpipe.figures import plot_groups
 from rlpipe.files import check_writable
 from rlpipe.metrics import EVAL_METRIC
 from rlpipe.runs import find_runs, group_runs
+from rlpipe.stats import AGGREGATES
 
 OPTIONS = {"agg": "mean", "svg": "false", "metric": EVAL_METRIC, "out": None}
 BOOLEANS = {"true": True, "false": False}
@@ -49,8 +52,12 @@ def parse_args(argv: Sequence[str]) -> tuple[list[str], dict[str, str | None]]:
 
 
 def default_out(dirs: Sequence[str]) -> Path:
-    """``<DIR>/curves.png`` for one directory, else ``curves.png`` here."""
-    return Path(dirs[0]) / "curves.png" if len(dirs) == 1 else Path("curves.png")
+    """Beside the data drawn: ``<DIR>/curves.png`` for one directory, else in the directory
+    that holds them all (the first one's parent when they share only the filesystem root)."""
+    common = Path(os.path.commonpath([os.path.abspath(d) for d in dirs]))
+    if len(dirs) > 1 and common == Path(common.anchor):
+        common = Path(dirs[0]).absolute().parent
+    return (Path(dirs[0]) if len(dirs) == 1 else common) / "curves.png"
 
 
 def _plot(args: list[str]) -> None:

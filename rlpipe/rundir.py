@@ -4,17 +4,20 @@ A run dir holds one run: ``config.yaml`` (the whole resolved config), ``checkpoi
 (``ckpt_<frames>.pt`` resume points, ``best_<frames>.pt`` the best evaluation's),
 ``metrics/scalars/`` (one CSV per metric), ``summary.json``, Hydra's record ``.hydra/`` and, while
 a process trains in it, ``.lock``. A run dir is data: nothing in it is imported unless the caller
-says it trusts the dir. Imports no torch and nothing of the algorithms.
+says it trusts the dir, and nothing is read or written through a symbolic link or special file
+in it (the run dir itself, its directories and its files): such a directory, or such a
+``config.yaml``, is refused in one line; such a file is skipped when reading and set aside
+(``<name>.refused``, with a warning) when a run begins. Imports no torch and nothing of the
+algorithms.
 """
 
 from __future__ import annotations
 
-import fcntl
+import io
 import json
 import os
-import sys
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -23,8 +26,11 @@ from omegaconf import DictConfig, OmegaConf
 
 from rlpipe.checkpoint import CorruptCheckpoint, fitting, load_checkpoint, loads, save_checkpoint
 from rlpipe.config import Config, config_from_yaml, config_to_dict, fingerprint, fingerprint_diff
+from rlpipe.console import warn
 from rlpipe.errors import RlpipeError, RunDirConflict, check
-from rlpipe.files import TEMP_SUFFIX, write_atomic
+from rlpipe.files import TEMP_SUFFIX, NotOwnFile, read_regular, strange, write_atomic
+from rlpipe.layout import RunLayout, frames_of
+from rlpipe.lock import locked
 from rlpipe.metrics import read_metric, truncate_metrics
 from rlpipe.outcomes import RunResult
 
@@ -50,58 +56,27 @@ class Checkpoint:
             yield
 
 
-class RunDir:
+class RunDir(RunLayout):
     """The directory ``path`` of one run, and the only code that reads or writes it.
 
     Training opens it in two steps: :meth:`open` checks that a config is this dir's run and
     reads the checkpoint to resume from (nothing is written), and :meth:`session`, once the run
-    is built, takes the lock and begins the run (``config.yaml``, metrics cut back to the
-    checkpoint, old checkpoints pruned, a best checkpoint from the part being redone removed);
-    :meth:`save_checkpoint`, :meth:`save_best` and :meth:`write_summary` need the session. The
-    read side (:meth:`read_config`, :meth:`read_checkpoint`, :meth:`metric`, :meth:`read_summary`,
-    :meth:`overrides`) serves ``load_run``, ``rlpipe.evaluate``, ``rlpipe.plot`` and sweeps.
+    is built, takes the lock and begins the run (links and special files set aside,
+    ``config.yaml``, metrics cut back to the checkpoint, old checkpoints pruned, a best
+    checkpoint from the part being redone removed); :meth:`save_checkpoint`, :meth:`save_best`
+    and :meth:`write_summary` need the session. The read side (:meth:`read_config`,
+    :meth:`read_checkpoint`, :meth:`metric`, :meth:`read_summary`, :meth:`overrides`) serves
+    ``load_run``, ``rlpipe.evaluate``, ``rlpipe.plot`` and sweeps. Its layout, and which of its
+    entries are its own: :class:`~rlpipe.layout.RunLayout`.
     """
 
-    CONFIG = "config.yaml"
-    LOCK = ".lock"
-    CHECKPOINTS = "checkpoints"
-    METRICS = "metrics"  # metrics/scalars/<name>.csv (TorchRL CSVLogger's layout)
-    SUMMARY = "summary.json"
-    HYDRA = ".hydra"
-    VIDEOS = "videos"  # videos/eval_<frames>.mp4 (video=true)
-    EVALUATION = "evaluation"  # evaluation/<policy>.json (python -m rlpipe.evaluate)
-    CURVE = "curve.png"
-
     def __init__(self, path: str | Path) -> None:
-        self.path = Path(path)
-        self._lock: int | None = None  # the lock file's descriptor while a session holds it
+        super().__init__(path)
+        self._lock = False  # whether a session holds the lock
         self._opened: tuple | None = None  # the checkpoints open() saw (None: not opened)
         self._keep = 3
 
-    def __fspath__(self) -> str:
-        return str(self.path)
-
-    def __repr__(self) -> str:
-        return f"RunDir({str(self.path)!r})"
-
-    # -- layout
-    @property
-    def checkpoints_dir(self) -> Path:
-        return self.path / self.CHECKPOINTS
-
-    @property
-    def scalars_dir(self) -> Path:
-        return self.path / self.METRICS / "scalars"
-
-    def metric_path(self, name: str) -> Path:
-        """Where metric ``name`` (e.g. ``eval/return_mean``) is logged."""
-        return self.scalars_dir / f"{name}.csv"
-
     # -- reading
-    def is_run(self) -> bool:
-        """Whether a run was started here (``config.yaml`` exists)."""
-        return (self.path / self.CONFIG).is_file()
-
     def read_config(self, *, allow_code: bool = False) -> Config:
         """The :class:`Config` the run was started with.
 
@@ -110,19 +85,19 @@ class RunDir:
         unless ``allow_code`` (only for run dirs you trust).
         """
         path = self.path / self.CONFIG
-        check(self.path.is_dir(), f"run directory {self.path} does not exist")
+        check(os.path.lexists(self.path), f"run directory {self.path} does not exist")
+        self.check_layout()
         check(
             path.is_file(),
             f"{self.path} is not an rlpipe run directory (no {self.CONFIG}); "
             "pass a directory a training run wrote, e.g. outputs/<date>/<time>",
         )
-        return config_from_yaml(path.read_bytes(), path, allow_code=allow_code)
+        return config_from_yaml(read_regular(path), path, allow_code=allow_code)
 
     def identity(self) -> tuple[str, str]:
         """``(env id, algorithm)`` as ``config.yaml`` names them ("?" where unknown), for
         titles: read as plain data, whatever the config's state."""
-        path = self.path / self.CONFIG
-        cfg = OmegaConf.load(path) if path.is_file() else OmegaConf.create()
+        cfg = self.read_yaml(self.CONFIG) or OmegaConf.create()
         return tuple(
             str(OmegaConf.select(cfg, key, default="?")) for key in ("env.id", "algo.name")
         )
@@ -139,23 +114,12 @@ class RunDir:
                 "(hydra.run.dir=<dir>)"
             )
 
-    def checkpoints(self) -> list[Path]:
-        """The resume points (``ckpt_<frames>.pt``: names sort by frames), oldest first."""
-        return sorted(self.checkpoints_dir.glob("ckpt_*.pt"))
-
-    def bests(self) -> list[Path]:
-        """The best evaluation's checkpoints (``best_<frames>.pt``, not resume points), oldest
-        first: the last is the best (one, unless a process died between writing a new one and
-        removing the old)."""
-        return sorted(self.checkpoints_dir.glob("best_*.pt"))
-
-    def latest_checkpoint(self) -> Path | None:
-        found = self.checkpoints()
-        return found[-1] if found else None
-
     def read_checkpoint(self, name: str | None = None) -> Checkpoint:
         """The newest checkpoint that loads (``name`` None), the best evaluation's (``"best"``),
         or ``checkpoints/<name>``."""
+        self.check_layout()
+        if name in (None, "best"):
+            self._own("best_*.pt" if name else "ckpt_*.pt", say=True)
         if name == "best":
             best = self.bests()
             check(
@@ -172,17 +136,22 @@ class RunDir:
             )
             return self._newest()
         path = self.checkpoints_dir / name if not Path(name).is_absolute() else Path(name)
-        check(path.is_file(), f"checkpoint {path} does not exist")
+        check(os.path.lexists(path), f"checkpoint {path} does not exist")
         return Checkpoint(path, load_checkpoint(path))
 
     def metric(self, name: str) -> tuple[np.ndarray, np.ndarray]:
-        """``(frames, values)`` of one logged metric; empty arrays when the run has none."""
-        return read_metric(self.metric_path(name))
+        """``(frames, values)`` of one logged metric; empty arrays when the run has none (or
+        its file is reached through a link: then a warning says so)."""
+        path = self.metric_path(name)
+        if os.path.lexists(path) and not self._inside(path):
+            warn(f"skipped {path}: reached through a symbolic link")
+            path = self.path / "missing"
+        return read_metric(path)
 
     def read_summary(self) -> RunResult | None:
         """What ``summary.json`` reports, or None (not written, or not readable)."""
         try:
-            data = json.loads((self.path / self.SUMMARY).read_text())
+            data = json.loads(read_regular(self.path / self.SUMMARY))
             return RunResult(**{"run_dir": str(self.path), **data})
         except (OSError, ValueError, TypeError):
             return None
@@ -190,8 +159,17 @@ class RunDir:
     def overrides(self) -> list[str]:
         """The command-line overrides the run was started with (Hydra's record; none from
         Python)."""
-        path = self.path / self.HYDRA / "overrides.yaml"
-        return [str(o) for o in OmegaConf.load(path)] if path.is_file() else []
+        record = self.read_yaml(f"{self.HYDRA}/overrides.yaml")
+        return [str(o) for o in record] if record is not None else []
+
+    def read_yaml(self, name: str) -> Any:
+        """The run dir's file ``name`` (e.g. ``.hydra/hydra.yaml``) loaded as plain YAML data,
+        or None (missing, unreadable, not the run's own)."""
+        path = self.path / name
+        try:
+            return OmegaConf.load(io.BytesIO(read_regular(path))) if self._inside(path) else None
+        except (OSError, ValueError, TypeError):
+            return None
 
     def original_command(self) -> str:
         """``python -m rlpipe <the overrides the run was started with>``."""
@@ -205,6 +183,8 @@ class RunDir:
         ``required`` (``resume=<dir>``): a dir without any checkpoint is an error. Damaged
         checkpoints are skipped with a warning; one written by another run is refused.
         """
+        if os.path.lexists(self.path):
+            self.check_layout()
         if required or self.is_run():
             self.check_same_run(cfg)
         self._opened = self._checkpoint_files()
@@ -226,64 +206,47 @@ class RunDir:
         """Hold the lock and begin the run at ``frames`` (see the class docstring); a session
         already held by this object is joined. ``config`` (None: not known) is written to
         ``config.yaml``; ``keep`` checkpoints are kept."""
-        if self._lock is not None:
+        if self._lock:
             yield
             return
-        with self._locked():
-            self._keep = keep
-            if self._opened is not None and self._checkpoint_files() != self._opened:
-                raise RunDirConflict(
-                    f"{self.path} changed while this run was being built (another process "
-                    "wrote checkpoints since it was opened); start it again"
-                )
+        self.check_layout()
+        with ExitStack() as stack:
             try:
-                if config is not None:
-                    self.save_config(config)
-                truncate_metrics(self.scalars_dir, frames)
-                self._prune()
-                best = self.bests()
-                kept = [path for path in best if _frames(path) <= frames][-1:]
-                for path in best:
-                    if path not in kept:
-                        path.unlink()
+                stack.enter_context(locked(self.path, self.LOCK))
             except OSError as err:
                 raise self.unwritable(err) from err
+            self._lock, self._keep = True, keep
+            stack.callback(setattr, self, "_lock", False)
+            self._begin(config, frames)
             yield
 
-    @contextmanager
-    def _locked(self) -> Iterator[None]:
-        """The lock file, held: a second process trying to lock the dir gets
-        :class:`RunDirConflict` naming the holder's PID (the OS drops the lock with the process,
-        however it dies)."""
-        path = self.path / self.LOCK
+    def _begin(self, config: Config | None, frames: int) -> None:
+        """What a session does first, holding the lock (see the class docstring)."""
+        if self._opened is not None and self._checkpoint_files() != self._opened:
+            raise RunDirConflict(
+                f"{self.path} changed while this run was being built (another process "
+                "wrote checkpoints since it was opened); start it again"
+            )
         try:
-            self.path.mkdir(parents=True, exist_ok=True)
-            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+            self._set_aside_strangers()
+            if config is not None:
+                self.save_config(config)
+            truncate_metrics(self.scalars_dir, frames)
+            self._prune()
+            best = self.bests()
+            kept = [path for path in best if frames_of(path) <= frames][-1:]
+            for path in best:
+                if path not in kept:
+                    path.unlink()
         except OSError as err:
             raise self.unwritable(err) from err
-        try:
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
-                raise RunDirConflict(
-                    f"{self.path} is in use by another rlpipe process (pid {holder}); wait for "
-                    "it to end or pick another run dir (hydra.run.dir=<dir>)"
-                ) from None
-            os.ftruncate(fd, 0)
-            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
-            self._lock = fd
-            yield
-        finally:
-            self._lock = None
-            os.close(fd)  # closing the descriptor releases the lock
 
     def save_config(self, cfg: Config) -> Path:
         """Write ``config.yaml`` unless it already holds ``cfg`` (atomically)."""
         path = self.path / self.CONFIG
         data = OmegaConf.to_yaml(config_to_dict(cfg)).encode()
         try:
-            if path.is_file() and path.read_bytes() == data:
+            if path.is_file() and not strange(path) and read_regular(path) == data:
                 return path
             self.path.mkdir(parents=True, exist_ok=True)
             write_atomic(path, data)
@@ -325,9 +288,12 @@ class RunDir:
             record.mkdir(parents=True)
         except FileExistsError:
             return
-        OmegaConf.save(job_cfg, record / "config.yaml")
-        OmegaConf.save(OmegaConf.create({"hydra": hydra_cfg}), record / "hydra.yaml")
-        OmegaConf.save(hydra_cfg.overrides.task, record / "overrides.yaml")
+        for name, data in (
+            ("config.yaml", job_cfg),
+            ("hydra.yaml", OmegaConf.create({"hydra": hydra_cfg})),
+            ("overrides.yaml", hydra_cfg.overrides.task),
+        ):
+            write_atomic(record / name, OmegaConf.to_yaml(data).encode())
 
     def unwritable(self, err: OSError) -> RlpipeError:
         """The one-line error for a run dir that cannot be written."""
@@ -344,11 +310,11 @@ class RunDir:
         for path in reversed(found):
             try:
                 state = load_checkpoint(path)
-            except CorruptCheckpoint as err:
+            except (CorruptCheckpoint, NotOwnFile) as err:
                 damaged.append(str(err))
                 continue
             for message in damaged:
-                print(f"rlpipe: warning: {message}; using {path.name} instead", file=sys.stderr)
+                warn(f"{message}; using {path.name} instead")
             return Checkpoint(path, state)
         raise RlpipeError(
             f"every checkpoint in {self.checkpoints_dir} is damaged ({len(found)} files); "
@@ -358,7 +324,7 @@ class RunDir:
     def _prune(self) -> None:
         """Keep the newest ``keep`` resume points that load, delete older ones, move damaged (or
         refused) ones to ``checkpoints/damaged/`` with a warning, and remove the temp files of
-        killed writes."""
+        killed writes. Only the run's own regular files count (:meth:`checkpoints`)."""
         for temp in self.checkpoints_dir.glob(f".*.pt{TEMP_SUFFIX}"):  # of a ckpt or a best
             temp.unlink(missing_ok=True)
         kept = 0
@@ -371,18 +337,7 @@ class RunDir:
                 aside = self.checkpoints_dir / "damaged" / path.name
                 aside.parent.mkdir(exist_ok=True)
                 os.replace(path, aside)
-                print(
-                    f"rlpipe: warning: moved damaged checkpoint {path} to {aside}", file=sys.stderr
-                )
-
-    def _checkpoint_files(self) -> tuple[tuple[str, int, int], ...]:
-        """Name, size and modification time of every resume point."""
-        return tuple((p.name, p.stat().st_size, p.stat().st_mtime_ns) for p in self.checkpoints())
+                warn(f"moved damaged checkpoint {path} to {aside}")
 
     def _check_session(self) -> None:
-        assert self._lock is not None, "RunDir writes need a session (RunDir.session)"
-
-
-def _frames(checkpoint: Path) -> int:
-    """The frames in a checkpoint's name (``ckpt_<frames>.pt``, ``best_<frames>.pt``)."""
-    return int(checkpoint.stem.rpartition("_")[2])
+        assert self._lock, "RunDir writes need a session (RunDir.session)"

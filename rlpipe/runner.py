@@ -14,12 +14,13 @@ from typing import Any, Protocol
 
 from torchrl.envs import EnvBase
 from torchrl.record.loggers import Logger
-from tqdm.auto import tqdm
 
 from rlpipe import faults
 from rlpipe.algos.base import EPISODE_RETURN, Algorithm, Metrics
+from rlpipe.budget import check_budget, no_evaluation_inside, spent
 from rlpipe.cadence import Cadence, Window
 from rlpipe.config import Config, config_to_dict
+from rlpipe.console import say
 from rlpipe.episodes import EvalResult, EvalStopped, evaluate
 from rlpipe.errors import RlpipeError, check
 from rlpipe.outcomes import Diverged, Interrupted, RunResult
@@ -60,14 +61,13 @@ class Callback:
     def on_end(self, runner: Runner, result: RunResult) -> None:
         """After the final evaluation and checkpoint, before ``run`` returns."""
 
+    def state_dict(self) -> dict[str, Any]:
+        """What checkpoints keep of this callback (plain data), so that a resumed run goes on
+        as the uninterrupted one would (nothing by default)."""
+        return {}
 
-def check_budget(algo: Algorithm, total_frames: int | None) -> None:
-    """A run needs ``total_frames`` unless the algorithm has a budget of its own."""
-    check(
-        total_frames is not None or algo.budget is not None,
-        f"total_frames=null, but {type(algo).__name__} has no budget of its own "
-        "(epochs, iterations): set total_frames=N",
-    )
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Take back what :meth:`state_dict` returned."""
 
 
 class Runner:
@@ -82,7 +82,9 @@ class Runner:
     frames and at the end (newest ``keep_checkpoints`` kept), and at every evaluation better
     than the ones before, through ``run_dir`` (a :class:`RunStore`: ``rlpipe.RunDir(path)``),
     which it holds for the whole run. ``callbacks`` (:class:`Callback`) see every evaluation
-    and the end.
+    and the end. ``eval_seed`` seeds ``eval_env`` before every evaluation (None: it goes on with
+    its own episodes), so that every evaluation of a run, resumed or not, meets the same
+    episodes' starts.
 
     ``config`` (a :class:`~rlpipe.config.Config`) is written to ``config.yaml`` and into every
     checkpoint, so ``load_run``, ``rlpipe.evaluate``, ``rlpipe.plot`` and ``train`` (resume)
@@ -107,6 +109,7 @@ class Runner:
         extra_state: dict[str, Any] | None = None,
         callbacks: Sequence[Callback] = (),
         config: Config | None = None,
+        eval_seed: int | None = None,
     ) -> None:
         check(
             isinstance(algo, Algorithm),
@@ -142,6 +145,7 @@ class Runner:
         self.log_every = log_every
         self.extra_state = extra_state or {}
         self.callbacks = list(callbacks)
+        self.eval_seed = eval_seed
         self.last_eval: EvalResult | None = None
         self._start = time.perf_counter()
         self._elapsed_before = 0.0  # wall seconds of the run before a resume
@@ -167,6 +171,9 @@ class Runner:
                 stored = self._stored_summary()
                 if stored is not None or self.last_eval is not None:
                     return self._finished_before(stored)
+            warning = no_evaluation_inside(self.algo, self.total_frames, self.eval_every)
+            if warning is not None:
+                say(f"rlpipe: warning: {warning}", err=True)
             return self._loop()
 
     def _loop(self) -> RunResult:
@@ -196,10 +203,12 @@ class Runner:
                     bar.show(self._last_return, self.last_eval)
                 if not self.finished and evaluation.due(frames):
                     self._evaluate()
-                if signals.received is not None:
-                    raise Interrupted(signals.received, frames, self.save())
-                if not self.finished and checkpoint.due(frames):
+                due = not self.finished and checkpoint.due(frames)
+                if signals.received is not None and not self.finished:  # (at the end: below)
+                    raise Interrupted(signals.received, frames, self.save(interrupted=not due))
+                if due:
                     self.save()
+                    self.algo.restart_episodes()  # as a run resumed from this checkpoint does
             self._evaluate()
             if signals.received is not None:
                 raise Interrupted(signals.received, self.algo.frames, self.save())
@@ -211,7 +220,7 @@ class Runner:
         """The result of a run resumed at (or past) its budget: its ``summary.json``, or, when
         a kill came between the final checkpoint and the summary, the final evaluation the
         checkpoint holds (then the summary is written and the callbacks run)."""
-        tqdm.write(
+        say(
             f"rlpipe: {self.run_dir} already finished at {self.algo.frames:,} frames; "
             "raise total_frames to train it further"
         )
@@ -242,16 +251,15 @@ class Runner:
     @property
     def finished(self) -> bool:
         """Whether the frame budget or the algorithm's own budget is spent."""
-        algo = self.algo
-        return (self.total_frames is not None and algo.frames >= self.total_frames) or (
-            algo.budget is not None and algo.iterations >= algo.budget
-        )
+        return spent(self.algo, self.total_frames)
 
-    def save(self) -> Path:
+    def save(self, *, interrupted: bool = False) -> Path:
         """Write a checkpoint now: the algorithm's state, the global RNGs, the run's clocks, the
-        last evaluation and ``extra_state``. Metrics not yet logged are logged first, so the
-        CSVs hold every row up to the checkpoint's frames."""
-        if self._window.sums:
+        last evaluation, the callbacks' state and ``extra_state``. Metrics not yet logged are
+        logged first, so the CSVs hold every row up to the checkpoint's frames; ``interrupted``
+        (a signal's checkpoint where no checkpoint was due): they are kept in the checkpoint
+        instead, so that the resumed run logs the rows an uninterrupted one does."""
+        if self._window.sums and not interrupted:
             self._flush()
         return self.store.save_checkpoint(self._state(), self.algo.frames)
 
@@ -270,6 +278,8 @@ class Runner:
                 "pending_eval": self._pending_eval,
                 "elapsed_at": self._elapsed_at,
                 "best_eval": self._best,
+                "window": self._window.state(),
+                "callbacks": {type(c).__name__: c.state_dict() for c in self.callbacks},
             },
         }
 
@@ -298,6 +308,11 @@ class Runner:
         self._pending_eval = bool(runner.get("pending_eval", False))
         self._elapsed_at = int(runner.get("elapsed_at", -1))
         self._best = float(runner.get("best_eval", -math.inf))
+        self._window.load(runner.get("window", {}))
+        states = runner.get("callbacks", {})
+        for callback in self.callbacks:
+            callback.load_state_dict(states.get(type(callback).__name__, {}))
+        self.algo.restart_episodes()  # fresh episodes, as the run did at this checkpoint
 
     def _stop_requested(self) -> bool:
         return self._signals.received is not None
@@ -335,6 +350,8 @@ class Runner:
     def _evaluate(self) -> None:
         """Evaluate and log; a signal aborts it (it then runs first when the run resumes)."""
         start = time.perf_counter()
+        if self.eval_seed is not None:
+            self.eval_env.set_seed(self.eval_seed)
         try:
             result = evaluate(
                 self.algo.policy, self.eval_env, self.eval_episodes, self._stop_requested

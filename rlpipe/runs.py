@@ -3,20 +3,23 @@ grouped by the overrides that made them (the seeds of one setting together)."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import os
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TypeVar
 
 from omegaconf import OmegaConf
 
 from rlpipe.config import flatten
 from rlpipe.errors import check
-from rlpipe.metrics import EVAL_METRIC, parse_rows
+from rlpipe.metrics import EVAL_METRIC, parse_rows, read_metric_bytes
 from rlpipe.rundir import RunDir
 
 # overrides that never tell experiments apart: seeds are what a group averages over, and a resumed
 # run is the run it continues
 NOT_GROUPED = ("seed", "resume")
+T = TypeVar("T")
 
 
 @dataclass
@@ -36,7 +39,7 @@ def find_runs(dirs: Sequence[str | Path], metric: str = EVAL_METRIC) -> list[Pat
         found = sorted(
             p.parents[len(relative.parts) - 1]
             for p in directory.rglob(str(relative))
-            if parse_rows(p.read_bytes())[0]
+            if parse_rows(read_metric_bytes(p))
         )
         check(
             bool(found),
@@ -54,7 +57,7 @@ def latest_run(root: str | Path = "outputs") -> Path:
     def written(run: Path) -> float:
         rundir = RunDir(run)
         files = [run / RunDir.CONFIG, run / RunDir.SUMMARY, *rundir.checkpoints()]
-        return max(f.stat().st_mtime for f in files if f.is_file())
+        return max((os.lstat(f).st_mtime for f in files if os.path.lexists(f)), default=0.0)
 
     runs = [path.parent for path in Path(root).glob(f"**/{RunDir.CONFIG}")]
     check(
@@ -70,10 +73,10 @@ def run_overrides(run_dir: Path) -> list[str]:
     rundir = RunDir(run_dir)
     if (run_dir / RunDir.HYDRA / "overrides.yaml").is_file():
         return rundir.overrides()
-    config = run_dir / RunDir.CONFIG
-    if not config.is_file():
+    config = rundir.read_yaml(RunDir.CONFIG)
+    if config is None:
         return []
-    flat = flatten(OmegaConf.to_container(OmegaConf.load(config)))
+    flat = flatten(OmegaConf.to_container(config))
     return [f"{key}={value}" for key, value in flat.items()]
 
 
@@ -81,19 +84,25 @@ def _key(override: str) -> str:
     return override.split("=")[0].lstrip("+~")
 
 
-def group_runs(runs: Sequence[Path]) -> list[Group]:
-    """Group runs that differ only by ``seed`` (or ``resume``), each labelled by what sets it apart.
-
-    Runs whose overrides agree but for ``seed`` and ``resume`` form one group; a group's label
-    is its overrides that not every run shares (a single group: its overrides, or "defaults").
-    """
-    keyed: dict[frozenset[str], list[Path]] = {}
-    for run in runs:
-        overrides = frozenset(o for o in run_overrides(run) if _key(o) not in NOT_GROUPED)
-        keyed.setdefault(overrides, []).append(run)
+def group_by_overrides(
+    items: Sequence[T], overrides_of: Callable[[T], Sequence[str]]
+) -> list[tuple[str, list[T]]]:
+    """``items`` grouped by their overrides but for ``seed`` and ``resume``, each group with its
+    label: its overrides that not every group shares (a single group: its overrides, or
+    "defaults"), in the order the groups first appear."""
+    keyed: dict[frozenset[str], list[T]] = {}
+    for item in items:
+        overrides = frozenset(o for o in overrides_of(item) if _key(o) not in NOT_GROUPED)
+        keyed.setdefault(overrides, []).append(item)
     common = frozenset.intersection(*keyed) if keyed else frozenset()
-    groups = []
-    for overrides, members in keyed.items():
-        label = " ".join(sorted(overrides - common if len(keyed) > 1 else overrides))
-        groups.append(Group(label or "defaults", members))
-    return groups
+    return [
+        (" ".join(sorted(overrides - common if len(keyed) > 1 else overrides)) or "defaults", group)
+        for overrides, group in keyed.items()
+    ]
+
+
+def group_runs(runs: Sequence[Path]) -> list[Group]:
+    """Group runs that differ only by ``seed`` (or ``resume``), labelled by what sets them apart.
+
+    The groups and labels of :func:`group_by_overrides`, over the overrides that made each run."""
+    return [Group(label, members) for label, members in group_by_overrides(runs, run_overrides)]

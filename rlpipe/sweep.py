@@ -11,16 +11,12 @@ it works the same whether the jobs ran here, in joblib workers or on a Slurm clu
 
 from __future__ import annotations
 
-import csv
-import io
 import json
 import logging
-import math
 import re
 import sys
 import time
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -32,25 +28,17 @@ from rlpipe.errors import RunDirConflict, check
 from rlpipe.files import write_atomic
 from rlpipe.outcomes import Interrupted, RunResult
 from rlpipe.rundir import RunDir
+from rlpipe.sweep_summary import (
+    CSV_FILE,
+    ERROR_FILE,
+    INTERRUPTED_FILE,
+    MARKDOWN_FILE,
+    REJECTED,
+    summary_markdown,
+    write_summary,
+)
 
 log = logging.getLogger(__name__)
-
-ERROR_FILE = "error.json"
-INTERRUPTED_FILE = "interrupted.json"
-CSV_FILE = "summary.csv"
-MARKDOWN_FILE = "summary.md"
-COLUMNS = (
-    "job",
-    "overrides",
-    "status",
-    "eval_mean",
-    "eval_std",
-    "eval_episodes",
-    "frames",
-    "wall_time",
-    "run_dir",
-    "error",
-)
 
 
 def resume_sweep(argv: list[str]) -> list[str]:
@@ -83,8 +71,8 @@ class SweepStopped(BaseException):
     def __init__(self, interrupted: Interrupted, sweep_dir: str | Path) -> None:
         super().__init__(str(interrupted))
         self.exit_code = interrupted.exit_code
-        rows = write_summary(sweep_dir)
-        self.table = summary_markdown(rows)
+        rows, rejected = write_summary(sweep_dir)
+        self.table = summary_markdown(rows, rejected)
         done = sum(row.status == "ok" for row in rows)
         self.message = (
             f"sweep stopped: {interrupted.signal_name} during job {len(rows) - 1} (checkpointed), "
@@ -141,105 +129,25 @@ def _mark(job_dir: Path, name: str, message: str, wall_time: float) -> None:
     (job_dir / other).unlink(missing_ok=True)
 
 
-@dataclass
-class JobRow:
-    """One job of a sweep as the summary shows it."""
-
-    job: int
-    overrides: list[str]
-    status: str  # ok | failed | interrupted | unfinished
-    run_dir: str
-    eval_mean: float = math.nan
-    eval_std: float = math.nan
-    eval_episodes: int = 0
-    frames: int = 0
-    wall_time: float = math.nan
-    error: str = ""
-
-
-def collect_jobs(sweep_dir: str | Path) -> list[JobRow]:
-    """Every job directory under ``sweep_dir`` (those with ``.hydra/``), by job number."""
-    rows = []
-    for hydra_dir in Path(sweep_dir).glob("**/.hydra"):
-        job_dir = hydra_dir.parent
-        overrides = OmegaConf.to_container(OmegaConf.load(hydra_dir / "overrides.yaml"))
-        number = OmegaConf.load(hydra_dir / "hydra.yaml").hydra.job.num
-        row = JobRow(int(number), list(overrides), "unfinished", str(job_dir))
-        error, interrupted = job_dir / ERROR_FILE, job_dir / INTERRUPTED_FILE
-        summary = RunDir(job_dir).read_summary()
-        if summary is not None:
-            row.status = "ok"
-            for key in ("eval_mean", "eval_std", "eval_episodes", "frames", "wall_time"):
-                setattr(row, key, getattr(summary, key))
-        elif interrupted.is_file() or error.is_file():
-            data = json.loads((interrupted if interrupted.is_file() else error).read_text())
-            row.status = "interrupted" if interrupted.is_file() else "failed"
-            row.error, row.wall_time = data["error"], data["wall_time"]
-        else:
-            row.error = "did not finish (no summary.json): killed, or still running"
-        rows.append(row)
-    return sorted(rows, key=lambda row: row.job)
-
-
-def summary_csv(rows: Sequence[JobRow]) -> str:
-    """The summary as CSV: one row per job, the full overrides, raw numbers."""
-    out = io.StringIO()
-    writer = csv.writer(out, lineterminator="\n")
-    writer.writerow(COLUMNS)
-    for row in rows:
-        values = {**vars(row), "overrides": " ".join(row.overrides)}
-        writer.writerow([values[column] for column in COLUMNS])
-    return out.getvalue()
-
-
-def summary_markdown(rows: Sequence[JobRow]) -> str:
-    """The summary as a Markdown table; overrides shared by every job are listed once above it."""
-    common = set.intersection(*(set(row.overrides) for row in rows)) if len(rows) > 1 else set()
-    lines = []
-    if common:
-        shared = " ".join(o for o in rows[0].overrides if o in common)
-        lines += [f"every job: `{shared}`", ""]
-    lines += [
-        "| job | overrides | final eval | frames | wall s | error |",
-        "|---|---|---|---|---|---|",
-    ]
-    for row in rows:
-        own = " ".join(o for o in row.overrides if o not in common) or "–"
-        score = f"{row.eval_mean:.2f} ± {row.eval_std:.2f}" if row.status == "ok" else row.status
-        frames = f"{row.frames:,}" if row.status == "ok" else "–"
-        wall = "–" if math.isnan(row.wall_time) else f"{row.wall_time:.1f}"
-        error = row.error.replace("|", "\\|")
-        lines.append(f"| {row.job} | {own} | {score} | {frames} | {wall} | {error} |")
-    return "\n".join(lines) + "\n"
-
-
-def write_summary(sweep_dir: str | Path) -> list[JobRow]:
-    """Write ``summary.csv`` and ``summary.md`` into ``sweep_dir`` (each complete, or absent)."""
-    rows = collect_jobs(sweep_dir)
-    if rows:
-        write_atomic(Path(sweep_dir) / CSV_FILE, summary_csv(rows).encode())
-        write_atomic(Path(sweep_dir) / MARKDOWN_FILE, summary_markdown(rows).encode())
-    return rows
-
-
 class SweepSummary(Callback):
     """Hydra callback: when a multirun ends, write and print its summary table.
 
-    ``failed_jobs`` holds how many jobs of the last sweep this process summarised failed (or
-    did not finish); the command line exits non-zero when there are any.
+    ``failed_jobs`` holds how many jobs of the last sweep this process summarised failed, did
+    not finish or were rejected; the command line exits non-zero when there are any.
     """
 
     failed_jobs = 0
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
         sweep_dir = Path(config.hydra.sweep.dir)
-        rows = write_summary(sweep_dir)
-        if not rows:
+        rows, rejected = write_summary(sweep_dir)
+        if not rows and not rejected:
             return
         failed = sum(row.status != "ok" for row in rows)
-        SweepSummary.failed_jobs = failed
-        print(f"\n{summary_markdown(rows)}")
+        SweepSummary.failed_jobs = failed + len(rejected)
+        print(f"\n{summary_markdown(rows, rejected)}")
+        refused = f", {len(rejected)} rejected ({sweep_dir / REJECTED})" if rejected else ""
         print(
-            f"rlpipe: sweep of {len(rows)} jobs, {failed} failed | summary "
+            f"rlpipe: sweep of {len(rows)} jobs, {failed} failed{refused} | summary "
             f"{sweep_dir / MARKDOWN_FILE}, {sweep_dir / CSV_FILE}"
         )

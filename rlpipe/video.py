@@ -16,13 +16,13 @@ from torchrl.envs import EnvBase, ExplorationType, set_exploration_type
 from rlpipe.config import EnvConfig
 from rlpipe.envs import make_env, sub_envs
 from rlpipe.errors import RlpipeError, check
+from rlpipe.files import temp_path
 
 MAX_STEPS = 10_000  # for envs without a time limit
 
 
 def make_render_env(cfg: EnvConfig, seed: int | None = None) -> EnvBase:
     """One copy of ``cfg`` that renders ``rgb_array`` frames; a clear error if it cannot."""
-    os.environ.setdefault("SDL_AUDIODRIVER", "dummy")  # pygame-drawn envs: no sound card noise
     if not os.environ.get("XDG_RUNTIME_DIR"):  # else SDL prints an error line about it
         os.environ["XDG_RUNTIME_DIR"] = tempfile.mkdtemp(prefix="rlpipe-runtime-")
     with warnings.catch_warnings():  # gymnasium warns about unknown render modes; we say it once
@@ -75,11 +75,16 @@ def record_episode(policy: TensorDictModuleBase, env: EnvBase) -> np.ndarray:
 
 
 def write_mp4(frames: np.ndarray, path: str | Path, fps: int) -> Path:
-    """Encode ``(T, H, W, 3)`` uint8 frames as an H.264 mp4 at ``path``."""
+    """Encode ``(T, H, W, 3)`` uint8 frames as an H.264 mp4 at ``path`` (encoded aside, then
+    renamed into place: never written through a link)."""
     import imageio.v2 as imageio
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    temp = temp_path(path).with_suffix(".mp4")  # encoded aside, renamed over a link or file
+    if os.path.lexists(temp):
+        os.unlink(temp)
     # macro_block_size=2: keep the frame size (H.264 only needs even sides)
-    imageio.mimwrite(path, list(frames), fps=fps, codec="libx264", macro_block_size=2)
+    imageio.mimwrite(temp, list(frames), fps=fps, codec="libx264", macro_block_size=2)
+    os.replace(temp, path)
     return path

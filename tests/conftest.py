@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 from collections.abc import Callable
@@ -13,6 +14,20 @@ import pytest
 
 # ~tuned: the algorithms' own defaults (tests of the tuned settings name them)
 TINY = ["~tuned", "progress=false", "total_frames=200", "eval_every=100", "eval_episodes=2"]
+# a finished tiny DQN run (checkpoints at 100 and 200): the tampering and ownership share
+BASE = [
+    "~tuned",
+    "progress=false",
+    "total_frames=200",
+    "eval_every=100",
+    "checkpoint_every=100",
+    "eval_episodes=2",
+    "algo.learning_starts=64",
+    "algo.batch_size=32",
+    "algo.frames_per_batch=20",
+    "env.num_envs=2",
+]
+NEWEST = "ckpt_000000000200.pt"
 
 
 def run_module(
@@ -31,6 +46,15 @@ def run_module(
         capture_output=True,
         text=True,
         timeout=timeout,
+    )
+
+
+def needs_extra(module: str, extra: str) -> Any:
+    """``module``, imported; where it is missing the test is skipped with the command that
+    installs the rlpipe extra bringing it."""
+    return pytest.importorskip(
+        module,
+        reason=f'needs the {extra} extra ({module}): pip install torch==2.13.0 -e ".[{extra}]"',
     )
 
 
@@ -71,3 +95,22 @@ def image_env_id() -> str:
             ),
         )
     return env_id
+
+
+@pytest.fixture(scope="module")
+def finished_run(tmp_path_factory) -> Path:
+    """A finished tiny DQN run (checkpoints at 100 and 200 frames), made once per module."""
+    run_dir = tmp_path_factory.mktemp("finished") / "run"
+    result = run_module("rlpipe", *BASE, f"hydra.run.dir={run_dir}", cwd=run_dir.parent)
+    assert result.returncode == 0, result.stderr
+    assert sorted(p.name for p in (run_dir / "checkpoints").glob("ckpt_*.pt")) == [
+        "ckpt_000000000100.pt",
+        NEWEST,
+    ]
+    return run_dir
+
+
+@pytest.fixture
+def run_copy(tmp_path, finished_run) -> Path:
+    """A copy of the finished run of its own, ``tmp_path/run``."""
+    return Path(shutil.copytree(finished_run, tmp_path / "run"))

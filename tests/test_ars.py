@@ -386,16 +386,16 @@ def test_config_checks():
         ARSConfig(noise=0)
     with pytest.raises(RlpipeError, match="step_size"):
         ARSConfig(step_size=-0.1)
-    with pytest.raises(RlpipeError, match="algo.noise must be > 0, got inf"):
+    with pytest.raises(RlpipeError, match="algo.noise must be a finite number > 0, got inf"):
         ARSConfig(noise=float("inf"))
-    with pytest.raises(RlpipeError, match="algo.step_size must be > 0, got nan"):
+    with pytest.raises(RlpipeError, match="algo.step_size must be a finite number > 0, got nan"):
         ARSConfig(step_size=float("nan"))
     # the search checks the same parameters, named as its own arguments
     policy, _ = make_ars_policy(make_env(CARTPOLE), ARSConfig())
     factory = partial(make_env, CARTPOLE)
     with pytest.raises(RlpipeError, match=r"^num_best \(3\) must be between 1 and num_direc"):
         ARSSearch(policy, factory, num_directions=2, num_best=3)
-    with pytest.raises(RlpipeError, match="^noise must be > 0, got nan"):
+    with pytest.raises(RlpipeError, match="^noise must be a finite number > 0, got nan"):
         ARSSearch(policy, factory, noise=float("nan"))
     with pytest.raises(RlpipeError, match="^backend must be one of local, ray; got 'spark'"):
         ARSSearch(policy, factory, backend="spark")
@@ -425,8 +425,8 @@ BAD = [
         ["algo.num_directions=16", "algo.num_best=17"],
         "algo.num_best (17) must be between 1 and algo.num_directions (16)",
     ),
-    (["algo.noise=0"], "algo.noise must be > 0"),
-    (["algo.step_size=-1"], "algo.step_size must be > 0"),
+    (["algo.noise=0"], "algo.noise must be a finite number > 0"),
+    (["algo.step_size=-1"], "algo.step_size must be a finite number > 0"),
 ]
 
 

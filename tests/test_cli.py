@@ -37,6 +37,41 @@ def test_the_python_api_prints_no_third_party_log_lines(tmp_path):
     assert proc.stdout == "" and "[torchrl]" not in proc.stderr, proc.stdout + proc.stderr
 
 
+@pytest.mark.parametrize("name", ["a run dir", "résumé", "実験"], ids=["space", "accents", "cjk"])
+def test_a_run_dir_with_spaces_or_letters_beyond_ascii(rlpipe_cli, tmp_path, name):
+    """Given as hydra.run.dir=... (Hydra's grammar takes such letters only quoted: rlpipe quotes
+    them), and resumed as resume=..."""
+    run = tmp_path / name
+    proc = rlpipe_cli(*TINY, run_dir=run)
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads((run / "summary.json").read_text())["run_dir"] == str(run)
+    more = [arg for arg in TINY if not arg.startswith("total_frames")]
+    proc = rlpipe_cli(*more, "total_frames=300", f"resume={run}", run_dir=run)
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads((run / "summary.json").read_text())["frames"] == 300
+
+
+def test_the_runs_console_lines_are_in_its_log(tmp_path, run_copy):
+    """rlpipe.log holds the resume notice, the warnings and the summary line the console shows."""
+    from conftest import BASE, run_module
+
+    with open(run_copy / "metrics" / "scalars" / "eval" / "return_mean.csv", "ab") as f:
+        f.write(b"30")  # a torn last line: a warning at resume
+    before = (run_copy / "rlpipe.log").read_text()
+    args = [arg for arg in BASE if not arg.startswith("total_frames")]
+    proc = run_module("rlpipe", *args, "total_frames=300", f"resume={run_copy}", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    console = [
+        line for line in (proc.stdout + proc.stderr).splitlines() if line.startswith("rlpipe: ")
+    ]
+    # stdout's and stderr's lines, each in order: the warning on stderr, the others on stdout
+    assert sorted(line.split()[1] for line in console) == ["final", "resuming", "warning:"]
+    log = (run_copy / "rlpipe.log").read_text()
+    assert log.startswith(before)  # appended to
+    for line in console:
+        assert f"] - {line}\n" in log, (line, log)
+
+
 def test_groups_compose_from_the_command_line(rlpipe_cli, tmp_path):
     proc = rlpipe_cli(*TINY, "algo=dqn", "env=mountaincar", "logger=none", "env.num_envs=2")
     assert proc.returncode == 0, proc.stderr

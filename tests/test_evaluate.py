@@ -18,6 +18,10 @@ from conftest import assert_one_error_line, run_module
 from rlpipe import Config, DQNConfig, train
 from rlpipe.evaluate import main
 
+NEEDS_VIDEO = pytest.mark.skipif(
+    importlib.util.find_spec("imageio") is None,
+    reason='needs the video extra: pip install torch==2.13.0 -e ".[video]"',
+)
 FIELDS = {
     "policy",
     "env",
@@ -91,7 +95,7 @@ def test_evaluate_baselines(tmp_path: Path, policy: str, env: str, env_id: str) 
     assert len(summary["returns"]) == 2
 
 
-@pytest.mark.skipif(importlib.util.find_spec("imageio") is None, reason="needs rlpipe[video]")
+@NEEDS_VIDEO
 def test_evaluate_video(run_dir: Path, tmp_path: Path) -> None:
     out = tmp_path / "greedy.json"
     proc = run_module(
@@ -109,7 +113,7 @@ def test_evaluate_video(run_dir: Path, tmp_path: Path) -> None:
     assert "video" in proc.stdout
 
 
-@pytest.mark.skipif(importlib.util.find_spec("imageio") is None, reason="needs rlpipe[video]")
+@NEEDS_VIDEO
 def test_latest_run_best_checkpoint_live_window_and_a_longer_video(tmp_path: Path) -> None:
     """Enjoy: run_dir=latest (the newest run under outputs/), checkpoint=best, render=human (a
     window; SDL's dummy driver here) and video_episodes=N (N episodes in one mp4)."""
@@ -230,7 +234,11 @@ def test_read_only_run_dir_fails_before_episodes(
     assert not (copy / "evaluation").exists()  # the probe's directory is removed again
 
 
-@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into a chmod 0o555 directory")
+@pytest.mark.skipif(
+    os.geteuid() == 0,
+    reason="root writes into a chmod 0o555 dir: run pytest as another user for this one; the "
+    "read-only case runs for root too (test_read_only_run_dir_fails_before_episodes, simulated)",
+)
 def test_chmod_read_only_run_dir(
     run_dir: Path, tmp_path: Path, no_eval: None, capsys: pytest.CaptureFixture[str]
 ) -> None:

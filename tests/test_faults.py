@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import signal
 import subprocess
 import sys
@@ -26,7 +25,7 @@ from unittest import mock
 
 import pytest
 import torch
-from conftest import run_module
+from conftest import BASE, NEWEST, run_module
 
 from rlpipe.checkpoint import load_checkpoint
 from rlpipe.rundir import RunDir
@@ -118,6 +117,8 @@ ALGOS = {
         "env.max_episode_steps=50",
     ],
 }
+# the algorithms' own defaults: the tuned settings of a pair (conf/tuned/) are not these runs'
+ALGOS = {name: ["~tuned", *args] for name, args in ALGOS.items()}
 # The kill matrix covers every fault point in chains of runs in one run dir: each run resumes the
 # dir the previous one's fault left (the same command, the next fault), the last runs clean. A
 # point's kill is followed by the resume the contract describes, in the code path it names, and
@@ -138,20 +139,6 @@ CHAINS = {
     "best_write+final_checkpoint": ["best_write@1", "final_checkpoint"],
 }
 
-# a finished tiny DQN run (checkpoints at 100 and 200): the tampering and ownership share
-BASE = [
-    "progress=false",
-    "total_frames=200",
-    "eval_every=100",
-    "checkpoint_every=100",
-    "eval_episodes=2",
-    "algo.learning_starts=64",
-    "algo.batch_size=32",
-    "algo.frames_per_batch=20",
-    "env.num_envs=2",
-]
-NEWEST = "ckpt_000000000200.pt"
-
 
 @dataclass(frozen=True)
 class Reference:
@@ -160,9 +147,7 @@ class Reference:
     frames: int  # the final frames
     eval_frames: tuple[int, ...]  # frames of every eval/return_mean row
     rows: dict[str, list[int]] = field(default_factory=dict)  # every metric's frames
-
-
-DQN_REFERENCE = Reference(1200, (400, 800, 1200))  # evaluations every 400 frames and at the end
+    run_dir: Path | None = None  # the uninterrupted run's dir
 
 
 def with_frames(args: list[str], total_frames: int) -> list[str]:
@@ -297,6 +282,39 @@ def assert_run_intact(run_dir: Path, reference: Reference, *, tag: str | None = 
         assert_no_live_processes(tag)
 
 
+def metric_files(run_dir: Path) -> dict[str, bytes]:
+    """Every metric CSV of a run dir but the clocks (``time/``), by ``metrics/<group>/<name>``."""
+    scalars = run_dir / "metrics" / "scalars"
+    return {
+        f"metrics/{path.relative_to(scalars)}": path.read_bytes()
+        for path in sorted(scalars.rglob("*.csv"))
+        if path.relative_to(scalars).parts[0] != "time"
+    }
+
+
+def same_run_files(run_dir: Path) -> dict[str, bytes]:
+    """What a run dir must hold byte for byte like the uninterrupted run's (docs/resuming.md):
+    every metric CSV but the clocks (``time/``), ``config.yaml``, ``summary.json`` but its
+    ``wall_time`` and ``run_dir``, and the names of the checkpoints and videos kept."""
+    files = metric_files(run_dir)
+    summary = json.loads((run_dir / "summary.json").read_text())
+    del summary["wall_time"], summary["run_dir"]
+    files["summary.json"] = json.dumps(summary, sort_keys=True).encode()
+    files["config.yaml"] = (run_dir / "config.yaml").read_bytes()
+    for folder in ("checkpoints", "videos"):
+        names = sorted(p.name for p in (run_dir / folder).glob("*") if p.is_file())
+        files[f"{folder}/"] = "\n".join(names).encode()
+    return files
+
+
+def assert_same_run(run_dir: Path, reference: Path) -> None:
+    """``run_dir`` ends as the uninterrupted ``reference`` run did (:func:`same_run_files`)."""
+    ours, theirs = same_run_files(run_dir), same_run_files(reference)
+    assert ours.keys() == theirs.keys(), sorted(ours.keys() ^ theirs.keys())
+    different = [name for name in ours if ours[name] != theirs[name]]
+    assert not different, {name: (ours[name][-120:], theirs[name][-120:]) for name in different}
+
+
 def error_line(result: subprocess.CompletedProcess) -> str:
     """The one ``rlpipe: error:`` line a refused command printed (exit code 2, nothing else)."""
     assert result.returncode == 2, (result.returncode, result.stderr)
@@ -318,9 +336,9 @@ def expected_returncode(fault: str) -> int:
 
 @pytest.fixture(scope="module")
 def reference(tmp_path_factory) -> Callable[[str], Reference]:
-    """The reference of an algorithm's kill-matrix config: DQN's is known, the others' come
-    from one uninterrupted run each (made on first use)."""
-    cache = {"dqn": DQN_REFERENCE}
+    """The reference of an algorithm's kill-matrix config: one uninterrupted run each (made on
+    first use)."""
+    cache: dict[str, Reference] = {}
 
     def get(algo: str) -> Reference:
         if algo not in cache:
@@ -331,7 +349,7 @@ def reference(tmp_path_factory) -> Callable[[str], Reference]:
             assert result.returncode == 0, result.stderr
             rows = metric_rows(run_dir)
             frames = json.loads((run_dir / "summary.json").read_text())["frames"]
-            cache[algo] = Reference(frames, tuple(rows["eval/return_mean"]), rows)
+            cache[algo] = Reference(frames, tuple(rows["eval/return_mean"]), rows, run_dir)
             assert_run_intact(run_dir, cache[algo], tag=tag)  # the checks hold for it
         return cache[algo]
 
@@ -394,29 +412,11 @@ def test_runs_killed_at_fault_points_resume_intact(tmp_path, reference, algo, ch
     if CHAINS[chain][-1] in ("final_checkpoint", "summary"):
         assert "already finished" in result.stdout, result.stdout
     assert_run_intact(run_dir, ref, tag=tag)
+    assert_same_run(run_dir, ref.run_dir)  # killed and resumed: the uninterrupted run, exactly
 
 
 # ---------------------------------------------------------------------------------------------
 # a finished tiny DQN run, and inputs damaged in it
-
-
-@pytest.fixture(scope="module")
-def finished_run(tmp_path_factory) -> Path:
-    """A finished tiny DQN run (checkpoints at 100 and 200 frames), made once per module."""
-    run_dir = tmp_path_factory.mktemp("finished") / "run"
-    result = rlpipe(*BASE, f"hydra.run.dir={run_dir}", cwd=run_dir.parent)
-    assert result.returncode == 0, result.stderr
-    assert sorted(p.name for p in (run_dir / "checkpoints").glob("ckpt_*.pt")) == [
-        "ckpt_000000000100.pt",
-        NEWEST,
-    ]
-    return run_dir
-
-
-@pytest.fixture
-def run_copy(tmp_path, finished_run) -> Path:
-    """A copy of the finished run of its own, ``tmp_path/run``."""
-    return Path(shutil.copytree(finished_run, tmp_path / "run"))
 
 
 def _rewrite_newest(run_dir: Path, change: Callable[[dict], None]) -> None:
@@ -485,13 +485,30 @@ def test_a_damaged_input_is_one_line_and_changes_nothing(tmp_path, run_copy, cas
     assert snapshot(run_copy) == before
 
 
-def test_an_env_rlpipe_cannot_batch_is_one_line_and_writes_nothing(tmp_path):
-    run_dir = tmp_path / "run"
-    result = rlpipe(
-        *BASE, "env=gym", "env.id=Blackjack-v1", f"hydra.run.dir={run_dir}", cwd=tmp_path
-    )
-    assert "Blackjack-v1" in error_line(result)
-    assert snapshot(run_dir) == {}  # no config.yaml, no checkpoint, no metrics
+# a config or env error found once the job runs: (overrides, what the error line names)
+BAD_RUNS = {
+    "unknown-env-id": (["env=gym", "env.id=Nope-v0"], "Nope-v0"),
+    "bad-module-path": (["env=gym", "env.id=nomodule:X-v0"], "nomodule"),
+    "dqn-on-continuous": (["env=pendulum"], "DQN needs a discrete action space"),
+    "sac-on-discrete": (["algo=sac"], "SAC needs continuous actions"),
+    "tuple-observation": (["env=gym", "env.id=Blackjack-v1"], "Tuple observation space"),
+    "bad-network-target": (["algo.network._target_=torch.nn.Nope"], "torch.nn has no Nope"),
+    "lr-inf": (["algo.lr=inf"], "algo.lr must be a finite number > 0, got inf"),
+}
+
+
+@pytest.mark.parametrize("case", BAD_RUNS)
+def test_a_bad_config_or_env_is_one_line_and_writes_nothing(tmp_path, case):
+    overrides, named = BAD_RUNS[case]
+    run_dir = tmp_path / "outputs" / "day" / "run"  # none of it exists yet
+    result = rlpipe(*BASE, *overrides, f"hydra.run.dir={run_dir}", cwd=tmp_path)
+    assert named in error_line(result)
+    assert sorted(p.name for p in tmp_path.iterdir()) == []  # no dir, no log, no lock
+    existing = tmp_path / "mine"  # a dir that was there: kept, and nothing written in it
+    existing.mkdir()
+    result = rlpipe(*BASE, *overrides, f"hydra.run.dir={existing}", cwd=tmp_path)
+    assert named in error_line(result)
+    assert existing.is_dir() and not any(existing.iterdir())
 
 
 def test_an_unknown_key_with_cfg_job_is_one_line(run_copy, monkeypatch, capsys):
@@ -594,7 +611,7 @@ def test_sweep_jobs_sharing_one_dir_fail_apart_from_it(tmp_path):
         cwd=tmp_path,
     )
     assert result.returncode == 1, result.stderr
-    assert "sweep of 2 jobs, 1 failed" in result.stdout, result.stdout
+    assert "sweep of 1 jobs, 0 failed, 1 rejected" in result.stdout, result.stdout
     errors = [line for line in result.stderr.splitlines() if line.startswith("rlpipe: error:")]
     assert len(errors) == 1, result.stderr
     refusal = f"{sweep / 'same'} belongs to another run: it differs in seed (1 here, 0 there)"
@@ -712,6 +729,80 @@ def test_sigterm_after_an_ars_iteration_keeps_its_row(tmp_path, reference):
     frames = metric_rows(run_dir)["train/return_mean"]
     assert frames == ref.rows["train/return_mean"] and len(frames) == 4  # one per iteration
     assert_run_intact(run_dir, ref, tag=tag)
+    assert_same_run(run_dir, ref.run_dir)
+
+
+@pytest.mark.parametrize(
+    ("stop", "exact"),
+    [("train_step@20:SIGTERM", True), ("train_step@30:SIGTERM", False)],
+    ids=["at-a-checkpoint", "between-checkpoints"],
+)
+def test_a_stopped_dqn_run_logs_no_row_the_uninterrupted_one_does_not(
+    tmp_path, reference, stop, exact
+):
+    """SIGTERM after 400 frames (a checkpoint was due: the resumed run is the uninterrupted one)
+    or after 600 (between checkpoints: the rows up to the stop are the uninterrupted run's, no
+    row is logged at the stop, and the resumed run's training episodes start afresh there)."""
+    run_dir = tmp_path / "run"
+    args = ["progress=false", *ALGOS["dqn"], "log_every=100", f"hydra.run.dir={run_dir}"]
+    result = rlpipe(*args, cwd=tmp_path, fault=stop)
+    assert result.returncode == 128 + signal.SIGTERM, result.stderr
+    stopped = RunDir(run_dir).read_checkpoint().frames
+    reference_dir = tmp_path / "reference"
+    result = rlpipe(*args[:-1], f"hydra.run.dir={reference_dir}", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    ours, theirs = metric_files(run_dir), metric_files(reference_dir)
+    assert ours and set(ours) <= set(theirs)
+    for name, data in ours.items():  # the stop logged no row of its own
+        assert data == _cut(theirs[name], stopped), name
+    result = rlpipe(*args, cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    rows, expected = metric_rows(run_dir), metric_rows(reference_dir)
+    for name in set(rows) - EPISODE_METRICS:  # logged at the frames the reference logs at
+        assert rows[name] == expected[name], name
+    if exact:
+        assert_same_run(run_dir, reference_dir)
+
+
+@FAULTS
+def test_reinforce_stops_within_seconds_of_sigterm_and_resumes_exactly(tmp_path):
+    """A long REINFORCE epoch (6,000 episodes on 100 lock-step copies) cut by SIGTERM: the run
+    checkpoints the previous epoch within seconds, and the resumed run is the uninterrupted one."""
+    run_dir = tmp_path / "run"
+    args = [
+        "progress=false",
+        "algo=reinforce",
+        "env=cartpole_continuous",
+        "algo.epochs=3",
+        "algo.episodes_per_epoch=6000",
+        "eval_every=1",
+        "checkpoint_every=1",
+        "eval_episodes=2",
+        f"hydra.run.dir={run_dir}",
+    ]
+    tag = uuid.uuid4().hex
+    proc = popen(*args, cwd=tmp_path, tag=tag)
+    try:
+        _wait_for(lambda: list((run_dir / "checkpoints").glob("ckpt_*.pt")), proc, "epoch 1")
+        time.sleep(0.5)
+        assert proc.poll() is None, "the run ended before the signal"
+        sent = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        _, stderr = proc.communicate(timeout=120)
+        took = time.monotonic() - sent
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 128 + signal.SIGTERM, stderr
+    assert took <= 10, f"took {took:.1f} s to stop after SIGTERM"
+    result = rlpipe(*args, cwd=tmp_path, tag=tag)
+    assert result.returncode == 0, result.stderr
+    reference_dir = tmp_path / "reference"
+    result = rlpipe(*args[:-1], f"hydra.run.dir={reference_dir}", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert_same_run(run_dir, reference_dir)
+    assert_no_live_processes(tag)
 
 
 def _wait_for(path_glob: Callable[[], list[Path]], proc: subprocess.Popen, what: str) -> None:

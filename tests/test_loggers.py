@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import TINY
+from conftest import TINY, needs_extra
 from torchrl.record.loggers import CSVLogger, TensorboardLogger
 
 from rlpipe import LoggerConfig, make_logger
@@ -60,7 +60,7 @@ def test_require_extra_video(monkeypatch: pytest.MonkeyPatch) -> None:
 
 
 def test_tensorboard_writes_events_and_csv(tmp_path: Path) -> None:
-    pytest.importorskip("tensorboard")
+    needs_extra("tensorboard", "tensorboard")
     try:
         require_extra("tensorboard", "logger=tensorboard")
     except RlpipeError as err:
@@ -154,7 +154,23 @@ def test_csv_logger_memory_is_flat(tmp_path: Path) -> None:
     ) == 1050
 
 
-FULL_DISK_SCRIPT = textwrap.dedent(
+# eval/return_mean.csv on a full disk: its file is opened on /dev/full (every write: ENOSPC);
+# rlpipe writes no file through a link, so the disk is put in place of the file this way
+FULL_DISK = textwrap.dedent(
+    """
+    import rlpipe.files
+
+    _open_append = rlpipe.files.open_append
+
+    def _on_a_full_disk(path, *args, **kwargs):
+        if str(path).endswith("eval/return_mean.csv"):
+            return open("/dev/full", "ab", buffering=0)
+        return _open_append(path, *args, **kwargs)
+
+    rlpipe.files.open_append = _on_a_full_disk
+    """
+)
+FULL_DISK_SCRIPT = FULL_DISK + textwrap.dedent(
     """
     import sys
     from rlpipe.loggers import CsvLogger
@@ -170,12 +186,9 @@ FULL_DISK_SCRIPT = textwrap.dedent(
 )
 
 
-@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full")
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full (Linux)")
 def test_csv_logger_on_a_full_disk(tmp_path: Path) -> None:
     """ENOSPC propagates from log_scalar, and nothing fails again at interpreter exit."""
-    full = tmp_path / "metrics" / "scalars" / "eval" / "return_mean.csv"
-    full.parent.mkdir(parents=True)
-    full.symlink_to("/dev/full")  # every write: ENOSPC
     proc = subprocess.run(
         [sys.executable, "-c", FULL_DISK_SCRIPT, str(tmp_path)],
         capture_output=True,
@@ -189,14 +202,18 @@ def test_csv_logger_on_a_full_disk(tmp_path: Path) -> None:
     assert loss.read_text() == "1,1.0\n2,2.0\n"  # the other metrics go on
 
 
-@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full")
-def test_training_on_a_full_disk_fails_with_one_line(tmp_path: Path, rlpipe_cli) -> None:
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full (Linux)")
+def test_training_on_a_full_disk_fails_with_one_line(tmp_path: Path) -> None:
     """A run whose metric write hits ENOSPC: one error line, no traceback wall at exit."""
     run_dir = tmp_path / "run"
-    full = run_dir / "metrics" / "scalars" / "eval" / "return_mean.csv"
-    full.parent.mkdir(parents=True)
-    full.symlink_to("/dev/full")
-    proc = rlpipe_cli("algo=dqn", *TINY, run_dir=run_dir)
+    args = ["algo=dqn", *TINY, f"hydra.run.dir={run_dir}"]
+    script = FULL_DISK + f"import sys; sys.argv = ['rlpipe', *{args!r}]\n"
+    script += "from rlpipe.__main__ import main; main()\n"
+    env = {**os.environ, "SDL_VIDEODRIVER": "dummy"}
+    env.pop("HYDRA_FULL_ERROR", None)
+    proc = subprocess.run(
+        [sys.executable, "-c", script], cwd=tmp_path, env=env, capture_output=True, text=True
+    )
     assert proc.returncode == 2
     assert proc.stderr.strip().splitlines() == [
         f"rlpipe: error: cannot write metrics in {run_dir}: No space left on device; free some "
@@ -219,11 +236,14 @@ def _tracked_run(rlpipe_cli, tmp_path: Path, backend: str) -> Path:
     run_dir = tmp_path / "run"
     done = rlpipe_cli("progress=false", f"logger={backend}", *TRACKED, run_dir=run_dir)
     assert done.returncode == 0, done.stderr
+    if backend == "tensorboard":  # rlpipe's own lines only (no "ALSA lib ... Unknown PCM")
+        lines = (done.stdout + done.stderr).splitlines()
+        assert lines and all(line.startswith("rlpipe: ") for line in lines), lines
     return run_dir
 
 
 def test_tensorboard_holds_the_config_name_curve_and_loss_cadence(tmp_path, rlpipe_cli) -> None:
-    pytest.importorskip("tensorboard")
+    needs_extra("tensorboard", "tensorboard")
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
     from tensorboard.plugins.hparams import plugin_data_pb2
 
@@ -253,7 +273,7 @@ def test_tensorboard_holds_the_config_name_curve_and_loss_cadence(tmp_path, rlpi
 
 
 def test_mlflow_holds_the_config_name_tags_and_files(tmp_path, rlpipe_cli) -> None:
-    pytest.importorskip("mlflow")
+    needs_extra("mlflow", "mlflow")
     import mlflow
 
     run_dir = _tracked_run(rlpipe_cli, tmp_path, "mlflow")
@@ -266,7 +286,7 @@ def test_mlflow_holds_the_config_name_tags_and_files(tmp_path, rlpipe_cli) -> No
 
 
 def test_wandb_holds_the_config_name_tags_and_files(tmp_path, rlpipe_cli) -> None:
-    pytest.importorskip("wandb")
+    needs_extra("wandb", "wandb")
     import shutil
     import subprocess
 

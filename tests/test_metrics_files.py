@@ -35,34 +35,75 @@ def warnings_of(err: str) -> list[str]:
 
 
 @pytest.mark.parametrize(
-    "tail",
+    ("tail", "cause"),
     [
-        pytest.param(b"\0" * 4096, id="nul-padding"),  # a power cut: the size grew, data did not
-        pytest.param(b"300,4.", id="torn-line"),  # killed in the middle of a write
-        pytest.param(b"\0\0\0\n300,4.5\n", id="nul-line-then-rows"),
-        pytest.param(b"garbage\n300,4.5\n", id="garbage"),
-        pytest.param(b"300\n", id="one-field"),
+        pytest.param(b"\0" * 4096, "NUL bytes: a crash or power cut", id="nul-padding"),
+        pytest.param(b"300,4.", "torn", id="torn-line"),  # killed in the middle of a write
     ],
 )
-def test_damaged_tail_is_cut_with_one_warning(
-    tmp_path: Path, tail: bytes, capsys: pytest.CaptureFixture[str]
+def test_a_torn_tail_is_cut_with_one_warning(
+    tmp_path: Path, tail: bytes, cause: str, capsys: pytest.CaptureFixture[str]
 ) -> None:
     path = write_metric(tmp_path, "eval/return_mean", ROWS + tail)
     truncate_metrics(RunDir(tmp_path).scalars_dir, 1_000)
     assert path.read_bytes() == ROWS
     lines = warnings_of(capsys.readouterr().err)
     assert lines == [
-        f"rlpipe: warning: {path}: cut {len(tail)} damaged bytes at the end (a crash while writing)"
+        f"rlpipe: warning: {path}: cut {len(tail)} bytes at the end ({cause} while writing)"
     ]
+    assert not path.with_name("return_mean.csv.damaged").exists()
 
 
-def test_damage_inside_the_kept_rows_ends_them(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+@pytest.mark.parametrize(
+    ("data", "kept", "damaged", "said"),
+    [
+        pytest.param(  # the case: one garbage line among good rows
+            b"0,1.0\ngarbage\n100,3.0\n150,4.0\n",
+            b"0,1.0\n100,3.0\n150,4.0\n",
+            b"garbage\n",
+            "line 2 is not a `frames,value` row (damaged): moved it to loss.csv.damaged",
+            id="garbage-line",
+        ),
+        pytest.param(
+            b"0,1.0\n50,2.0\0\n100,3.0\n",
+            b"0,1.0\n100,3.0\n",
+            b"50,2.0\0\n",
+            "line 2 is not a `frames,value` row",
+            id="nul-in-a-line",
+        ),
+        pytest.param(
+            ROWS + b"\0\0\0\n300,4.5\n",
+            ROWS + b"300,4.5\n",
+            b"\0\0\0\n",
+            "line 4 is not",
+            id="nul-line-then-rows",
+        ),
+        pytest.param(
+            b"300\n" + ROWS + b"1,2,3\n",
+            ROWS,
+            b"300\n1,2,3\n",
+            "lines 1, 5 are not a `frames,value` row (damaged): moved them to loss.csv.damaged",
+            id="two-lines",
+        ),
+    ],
+)
+def test_a_damaged_line_is_moved_aside_and_every_intact_row_kept(
+    tmp_path: Path,
+    data: bytes,
+    kept: bytes,
+    damaged: bytes,
+    said: str,
+    capsys: pytest.CaptureFixture[str],
 ) -> None:
-    path = write_metric(tmp_path, "train/loss", b"0,1.0\n50,2.0\0\n100,3.0\n")
-    truncate_metrics(RunDir(tmp_path).scalars_dir, 100)
-    assert path.read_bytes() == b"0,1.0\n"
-    assert len(warnings_of(capsys.readouterr().err)) == 1
+    path = write_metric(tmp_path, "train/loss", data)
+    truncate_metrics(RunDir(tmp_path).scalars_dir, 1_000)
+    assert path.read_bytes() == kept
+    assert path.with_name("loss.csv.damaged").read_bytes() == damaged
+    (line,) = warnings_of(capsys.readouterr().err)
+    assert line.startswith(f"rlpipe: warning: {path}: ") and said in line, line
+    assert "crash" not in line  # not a crash's torn tail: it does not say so
+    truncate_metrics(RunDir(tmp_path).scalars_dir, 1_000)  # once moved, nothing more to say
+    assert capsys.readouterr().err == "" and path.read_bytes() == kept
 
 
 def test_rows_past_the_checkpoint_are_cut_quietly(
@@ -116,11 +157,11 @@ def test_readers_skip_a_damaged_tail(tmp_path: Path, capsys: pytest.CaptureFixtu
 
 
 def test_parse_rows() -> None:
-    assert parse_rows(b"") == ([], 0)
-    rows, good = parse_rows(b"1,2\n3,nan\n")
-    assert good == 10 and rows[0] == (1.0, 2.0) and rows[1][0] == 3.0 and np.isnan(rows[1][1])
-    assert parse_rows(b"1,2\n3,4") == ([(1.0, 2.0)], 4)
-    assert parse_rows(b"1,2,3\n") == ([], 0)
+    assert parse_rows(b"") == []
+    rows = parse_rows(b"1,2\n3,nan\n")
+    assert rows[0] == (1.0, 2.0) and rows[1][0] == 3.0 and np.isnan(rows[1][1])
+    assert parse_rows(b"1,2\n3,4") == [(1.0, 2.0)]  # a torn last line is not a row
+    assert parse_rows(b"1,2,3\n5,6\n") == [(5.0, 6.0)]  # a damaged line hides no later row
 
 
 TRUNCATE = (

@@ -19,7 +19,9 @@ def pygame(monkeypatch: pytest.MonkeyPatch):
     """pygame with the dummy video driver (no window), set before it is imported."""
     monkeypatch.setenv("SDL_VIDEODRIVER", "dummy")
     monkeypatch.setenv("PYGAME_HIDE_SUPPORT_PROMPT", "1")
-    return pytest.importorskip("pygame")
+    return pytest.importorskip(
+        "pygame", reason="needs pygame (gymnasium's renderer): pip install pygame"
+    )
 
 
 def scripted(batches: list[list[SimpleNamespace]]) -> Iterator[list[SimpleNamespace]]:

@@ -76,6 +76,40 @@ def test_plot_default_out_is_in_the_dir(runs: list[Path], tmp_path: Path) -> Non
     assert_picture(runs[1] / "curves.png")
 
 
+def test_plots_of_several_dirs_go_beside_them_not_here(runs: list[Path], tmp_path: Path) -> None:
+    here = tmp_path / "elsewhere"
+    here.mkdir()
+    proc = run_module("rlpipe.plot", *map(str, runs), cwd=here)
+    assert proc.returncode == 0, proc.stderr
+    assert_picture(runs[0].parent / "curves.png")  # the dir that holds both runs
+    assert not any(here.iterdir())
+
+
+def test_titles_and_bands_say_only_what_is_there(runs: list[Path], tmp_path: Path) -> None:
+    """One seed per line: no confidence band claimed; curve.png's ± std band stays within the
+    returns each evaluation saw (Acrobot's band cannot go below -500)."""
+    from rlpipe.figures import groups_figure, run_figure
+    from rlpipe.runs import Group
+
+    one = groups_figure([Group("seed0", runs[:1])], metric="eval/return_mean", aggregate="mean")
+    assert (
+        one._suptitle.get_text()
+        == "greedy evaluation return: one seed per line (no confidence band)"
+    )
+    assert not one.axes[0].collections  # no band drawn
+    run = tmp_path / "acrobot"
+    scalars = run / "metrics" / "scalars" / "eval"
+    scalars.mkdir(parents=True)
+    rows = {"mean": (-480.0, -300.0), "std": (40.0, 150.0), "min": (-500.0, -500.0)}
+    rows["max"] = (-420.0, -100.0)
+    for name, values in rows.items():
+        (scalars / f"return_{name}.csv").write_text(f"1000,{values[0]}\n2000,{values[1]}\n")
+    (run / "config.yaml").write_text("env:\n  id: Acrobot-v1\nalgo:\n  name: dqn\n")
+    (band,) = run_figure(run).axes[0].collections
+    lowest = band.get_paths()[0].vertices[:, 1].min()
+    assert lowest == -500.0  # mean - std would be -520 and -450: clipped to the min seen
+
+
 @pytest.mark.parametrize(
     "args, message",
     [
@@ -176,7 +210,11 @@ def test_plot_read_only_run_dir(
     assert not (copy / "curves.png").exists()
 
 
-@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into a chmod 0o555 directory")
+@pytest.mark.skipif(
+    os.geteuid() == 0,
+    reason="root writes into a chmod 0o555 dir: run pytest as another user for this one; the "
+    "read-only case runs for root too (test_plot_read_only_run_dir, simulated)",
+)
 def test_plot_chmod_read_only_run_dir(
     runs: list[Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -10,7 +10,7 @@ from functools import partial
 
 import pytest
 import torch
-from conftest import TINY
+from conftest import TINY, needs_extra
 
 from rlpipe.algos import ARSConfig
 from rlpipe.algos.ars import ARSSearch, RayConfig, make_ars_policy
@@ -51,7 +51,7 @@ def two_iterations(**backend) -> tuple[torch.Tensor, list, list]:
 
 
 def test_ray_backend_gives_the_same_search_as_the_local_backend():
-    ray = pytest.importorskip("ray")
+    ray = needs_extra("ray", "ray")
     on_ray = two_iterations(backend="ray", workers=2, ray_num_cpus=2)
     assert not ray.is_initialized()  # the search shut down the Ray it started
     for local in (two_iterations(workers=1), two_iterations(workers=2)):
@@ -61,7 +61,7 @@ def test_ray_backend_gives_the_same_search_as_the_local_backend():
 
 
 def test_ray_search_starts_ray_only_when_it_steps():
-    ray = pytest.importorskip("ray")
+    ray = needs_extra("ray", "ray")
     policy, _ = make_ars_policy(make_env(CARTPOLE), ARSConfig())
     search = ARSSearch(policy, partial(make_env, CARTPOLE), backend="ray", ray_num_cpus=2)
     search.close()
@@ -69,7 +69,7 @@ def test_ray_search_starts_ray_only_when_it_steps():
 
 
 def test_cli_trains_ars_on_ray(rlpipe_cli):
-    pytest.importorskip("ray")
+    needs_extra("ray", "ray")
     proc = rlpipe_cli(*TINY, *RAY_OPTIONS, "algo.backend=ray", "algo.ray.num_cpus=2")
     assert proc.returncode == 0, proc.stderr
     assert "final eval" in proc.stdout
@@ -107,7 +107,7 @@ def test_ray_backend_without_ray_names_the_install_command(tmp_path):
 
 
 def test_unreachable_ray_address_is_one_line(rlpipe_cli):
-    pytest.importorskip("ray")
+    needs_extra("ray", "ray")
     with socket.socket() as sock:  # a loopback port nothing listens on
         sock.bind(("127.0.0.1", 0))
         address = f"127.0.0.1:{sock.getsockname()[1]}"

@@ -302,7 +302,7 @@ def _limit_file_size() -> None:
 def test_a_failing_checkpoint_write_is_one_line(tmp_path):
     run_dir = tmp_path / "run"
     result = subprocess.run(
-        [sys.executable, "-m", "rlpipe", *DQN_ARGS, "total_frames=400", f"hydra.run.dir={run_dir}"],
+        [sys.executable, "-m", "rlpipe", *DQN_ARGS, "total_frames=600", f"hydra.run.dir={run_dir}"],
         cwd=tmp_path,
         capture_output=True,
         text=True,

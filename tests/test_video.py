@@ -7,7 +7,7 @@ from pathlib import Path
 import imageio.v2 as imageio
 import numpy as np
 import pytest
-from conftest import TINY
+from conftest import TINY, needs_extra
 from PIL import Image
 
 from rlpipe import EnvConfig
@@ -82,7 +82,7 @@ def test_env_without_rgb_array_is_refused(tmp_path, monkeypatch):
 
 
 def test_video_true_records_every_evaluation_and_logs_to_tensorboard(rlpipe_cli, tmp_path):
-    pytest.importorskip("tensorboard", reason="needs the tensorboard extra")
+    needs_extra("tensorboard", "tensorboard")
     proc = rlpipe_cli(*TINY, "video=true", "logger=tensorboard")
     assert proc.returncode == 0, proc.stderr
     run = tmp_path / "run"

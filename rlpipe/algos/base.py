@@ -71,6 +71,9 @@ class Algorithm:
     # the algorithm's own budget in iterations (REINFORCE epochs, ARS iterations); None: the
     # run's total_frames decides
     budget: int | None = None
+    # the most frames that budget can take (None: not known); a run warns when its first
+    # evaluation lies past it
+    budget_frames: int | None = None
     finite_keys: ClassVar[tuple[str, ...]] = ()  # metrics that must stay finite (else: diverged)
     divergence_hint: ClassVar[str] = "try a smaller algo.lr"  # what a divergence error ends with
     frame_limit: int | None = None  # the run's total_frames: collect no further (limit_frames)
@@ -113,6 +116,12 @@ class Algorithm:
     def limit_frames(self, total_frames: int | None) -> None:
         """The runner's ``total_frames``: an iteration collects no frames past it."""
         self.frame_limit = total_frames
+
+    def restart_episodes(self) -> None:
+        """Start fresh training episodes, their env seeds drawn from torch's generator: the
+        runner calls it after each checkpoint and when a run resumes, so that a resumed run
+        meets the episodes the uninterrupted one does (nothing by default: for an algorithm
+        whose iterations start fresh episodes anyway)."""
 
     def request_stop(self, stop: bool = True) -> None:
         """Ask the current iteration to end early (SIGINT/SIGTERM); ``False`` clears it."""
@@ -252,6 +261,11 @@ class EnvAlgorithm(Algorithm):
     def close(self) -> None:
         """Stop the collector (:meth:`make_collector`) and close its env."""
         self.collector.shutdown()
+
+    def restart_episodes(self) -> None:
+        """Cut the collector's episodes: every env copy reset, seeded from torch's generator."""
+        self.collector.set_seed(int(torch.randint(2**31 - 1, ())))
+        self.collector.reset()
 
     def collect(self, at_most: int | None = None) -> TensorDictBase:
         """The collector's next batch, ``[env copies, steps]``, cut short (whole steps of the

@@ -4,6 +4,9 @@ optionally, a learned state-value baseline whose targets TorchRL's TD(1) estimat
 
 from __future__ import annotations
 
+import math
+from collections.abc import Callable
+
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import (
@@ -35,32 +38,48 @@ def normalized_returns(batch: TensorDictBase, gamma: float) -> torch.Tensor:
     return centered / (var.sqrt()[episode] + _EPS)
 
 
+class Stopped(Exception):
+    """``should_stop`` ended :func:`collect_episodes` before its episodes were done."""
+
+
 @torch.no_grad()
 def collect_episodes(
-    policy: TensorDictModuleBase, env: EnvBase, episodes: int
+    policy: TensorDictModuleBase,
+    env: EnvBase,
+    episodes: int,
+    *,
+    frame_limit: int | None = None,
+    should_stop: Callable[[], bool] | None = None,
 ) -> tuple[TensorDictBase, int]:
     """``episodes`` whole episodes of ``policy`` (sampling) and the env frames it took.
 
     The env's ``n`` copies start fresh and run in lock-step; copy ``i`` contributes its first
     ``episodes // n`` (+1 for the first ``episodes % n`` copies) episodes, so every episode
     is on-policy and short ones are not over-represented; frames stepped past a copy's quota
-    are counted but not kept. Episodes are concatenated along the single batch dimension,
-    each ending at a ``("next", "done")`` flag.
+    are counted but not kept. Stepping stops once ``frame_limit`` frames are stepped (whole
+    steps of the copies); the episodes it cuts are not kept. ``should_stop``, polled after every
+    step, ends the collection with :class:`Stopped`. Episodes are concatenated along the single
+    batch dimension, each ending at a ``("next", "done")`` flag.
     """
     n = env.batch_size.numel()
     remaining = episode_quotas(n, episodes)
     device = next(policy.parameters()).device
     td, steps, kept = env.reset(), [], []
+    limit = frame_limit if frame_limit is not None else math.inf
     with set_exploration_type(ExplorationType.RANDOM):
-        while bool((remaining > 0).any()):
+        while bool((remaining > 0).any()) and n * len(steps) < limit:
             td = policy(td) if device == env.device else policy(td.to(device)).to(env.device)
             td, td_next = env.step_and_maybe_reset(td)
             steps.append(td)
             kept.append(remaining > 0)
             remaining -= td["next", "done"].reshape(n).long() * (remaining > 0)
+            if should_stop is not None and should_stop():
+                raise Stopped
             td = td_next
     rollout = torch.stack(steps, 1)  # [n, time]: each copy's episodes in order
-    return rollout[torch.stack(kept, 1)], n * len(steps)
+    done = rollout["next", "done"].reshape(n, len(steps))
+    ended = done.flip(1).cumsum(1).flip(1) > 0  # up to each copy's last episode end
+    return rollout[torch.stack(kept, 1) & ended], n * len(steps)
 
 
 class Reinforce(EnvAlgorithm):
@@ -73,7 +92,10 @@ class Reinforce(EnvAlgorithm):
     ``"value"``: TorchRL's TD(1) advantage, the discounted return minus a learned ``V(s)``, which
     bootstraps on ``V`` where the time limit cut an episode), then ``cfg.updates_per_epoch`` Adam
     steps on random minibatches of ``cfg.batch_size`` frames minimise ``-log pi(a|s) * weight``
-    (plus, with the baseline, ``V``'s squared error to the epoch's TD(1) targets).
+    (plus, with the baseline, ``V``'s squared error to the epoch's TD(1) targets). An epoch
+    that reaches the run's ``total_frames`` (:meth:`limit_frames`) stops there and learns from
+    the episodes that ended; a stop request (SIGINT/SIGTERM) ends it within an env step, undone
+    (its random draws given back, so the checkpoint is the previous epoch's end).
     ``network`` (or ``cfg.network``) is your policy network in place of the MLP: observations to
     logits, or to a mean and a pre-sigmoid std per continuous action dimension.
     """
@@ -126,10 +148,24 @@ class Reinforce(EnvAlgorithm):
     def train_step(self) -> Metrics:
         # each epoch's episodes start from env seeds drawn from torch's generator, which
         # checkpoints hold: a resumed run collects the episodes the uninterrupted one would have
+        generator = torch.get_rng_state()
         self.env.set_seed(int(torch.randint(2**31 - 1, ())))
-        batch, frames = collect_episodes(self.policy, self.env, self.cfg.episodes_per_epoch)
+        limit = None if self.frame_limit is None else self.frame_limit - self.frames
+        try:
+            batch, frames = collect_episodes(
+                self.policy,
+                self.env,
+                self.cfg.episodes_per_epoch,
+                frame_limit=limit,
+                should_stop=lambda: self.stop_requested,
+            )
+        except Stopped:  # a signal: the epoch did not happen (its draws are given back)
+            torch.set_rng_state(generator)
+            return {}
         self.frames += frames
         self.iterations += 1
+        if not len(batch):  # the budget ended before any episode did
+            return {}
         batch = batch.to(self.device)
         self.weigh(batch)
         data = batch.select("observation", self._sample_key, "weight", "value_target", strict=False)
@@ -144,6 +180,9 @@ class Reinforce(EnvAlgorithm):
         metrics: Metrics = {LOSS: float(torch.stack(losses).mean())}
         metrics.update(episode_metrics(batch))
         return metrics
+
+    def restart_episodes(self) -> None:
+        """Nothing: every epoch starts fresh episodes, seeded from torch's generator."""
 
     def close(self) -> None:
         """Close the env."""

@@ -15,7 +15,7 @@ from torchrl.envs import EnvBase
 from rlpipe.algos.ars.search import ARSSearch
 from rlpipe.algos.base import Algorithm, Metrics
 from rlpipe.algos.configs import SEARCH_PARAMS, ARSConfig, RayConfig
-from rlpipe.envs import is_discrete, num_actions, observation_size
+from rlpipe.envs import is_discrete, num_actions, observation_size, sub_envs
 from rlpipe.errors import RlpipeError
 from rlpipe.models import ArgmaxAction, ClampAction, mlp, user_network
 from rlpipe.normalizer import Normalizer
@@ -56,8 +56,11 @@ class ARS(Algorithm):
         probe = env_factory(num_envs=1, vectorization="sync")
         try:
             self.policy, normalizer = make_ars_policy(probe, cfg, self.user_network)
+            spec = sub_envs(probe)[0].spec
         finally:
             probe.close()
+        limit = min(cfg.episode_length, (spec and spec.max_episode_steps) or cfg.episode_length)
+        self.budget_frames = cfg.iterations * 2 * cfg.num_directions * limit  # at most
         seed = int(torch.randint(0, 2**31 - 1, ()))  # from the run's seeded torch generator
         self.search = ARSSearch(
             self.policy,

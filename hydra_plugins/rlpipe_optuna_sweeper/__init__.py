@@ -1,0 +1,1 @@
+"""rlpipe's Optuna sweeper as a Hydra plugin (``hydra/sweeper=optuna``)."""

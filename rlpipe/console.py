@@ -1,0 +1,51 @@
+"""rlpipe's own lines (resume notices, warnings, the summary line): printed on the console and
+recorded in the run's log file, ``<run dir>/rlpipe.log``, whose handler writes the file itself,
+never through a link."""
+
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+from typing import IO
+
+from rlpipe.files import NotOwnFile, open_append, set_aside, strange
+
+# the command line's Hydra logging config sends this logger to the run's log file only
+RUN_LOG = logging.getLogger("rlpipe.run")
+RUN_LOG.addHandler(logging.NullHandler())  # from Python: printed, not logged again
+RUN_LOG.propagate = False
+
+
+def say(line: str, *, err: bool = False) -> None:
+    """Print ``line`` (on stderr with ``err``; a progress bar stays whole) and record it in the
+    run's log file when the command line has one."""
+    from tqdm.auto import tqdm  # here: the command line's front door stays light
+
+    tqdm.write(line, file=sys.stderr if err else sys.stdout)
+    RUN_LOG.log(logging.WARNING if err else logging.INFO, line)
+
+
+def warn(message: str) -> None:
+    """``rlpipe: warning: <message>`` on stderr and in the run's log."""
+    say(f"rlpipe: warning: {message}", err=True)
+
+
+class RunLogHandler(logging.FileHandler):
+    """Hydra's ``file`` handler for ``rlpipe.log`` (``conf/config.yaml``): opens the file itself
+    (a link, special file or hard link in its place is set aside first, with a warning), and,
+    with ``delay: true``, only at the first line, so a run that fails before it logs anything
+    leaves no log file."""
+
+    def _open(self) -> IO[str]:
+        path = Path(self.baseFilename)
+        try:
+            return open_append(path, "a", encoding=self.encoding or "utf-8", errors=self.errors)
+        except NotOwnFile:
+            what = strange(path) or "a file with another name too (a hard link)"
+            aside = set_aside(path)
+            print(
+                f"rlpipe: warning: {path} was {what}, not this run's log: moved it to {aside}",
+                file=sys.stderr,
+            )
+            return open_append(path, "a", encoding=self.encoding or "utf-8", errors=self.errors)
