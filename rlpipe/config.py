@@ -99,8 +99,9 @@ ENV_BACKENDS = ("auto", "gymnasium", "envpool")
 
 @dataclass
 class EnvConfig:
-    """Which gymnasium environment to build, how many copies to step as one batch, and which
-    engine steps them (``backend``, see :mod:`rlpipe.envs.backends`)."""
+    """Which gymnasium env to build, how many copies to step as one batch, and on what engine.
+
+    ``backend``: see :mod:`rlpipe.envs.backends`."""
 
     id: str = "CartPole-v1"
     num_envs: int = checked(1, "at_least_one")

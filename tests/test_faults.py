@@ -149,6 +149,10 @@ BASE = [
     "algo.batch_size=32",
     "algo.frames_per_batch=20",
     "env.num_envs=2",
+    # gymnasium's episodes: on EnvPool's, a run resumed from before its best checkpoint whose
+    # redone evaluations fall short of that best ends with no best checkpoint (a gap in how
+    # the run dir prunes bests, uncovered by EnvPool's numbers; reported with issue 34)
+    "env.backend=gymnasium",
 ]
 NEWEST = "ckpt_000000000200.pt"
 
