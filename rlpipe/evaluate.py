@@ -33,8 +33,7 @@ from torchrl.envs import EnvBase
 
 from rlpipe.cli import compose_config, run_entry_point
 from rlpipe.config import ENV_BACKENDS, EnvConfig
-from rlpipe.envs import make_env
-from rlpipe.envs.backends import backend_of
+from rlpipe.envs import envpool_env, make_env
 from rlpipe.episodes import EvalResult, eval_envs, evaluate
 from rlpipe.errors import check
 from rlpipe.files import check_writable
@@ -168,7 +167,7 @@ def run(cfg: EvaluateConfig) -> dict[str, Any]:
         summary: dict[str, Any] = {
             "policy": cfg.policy,
             "env": env_cfg.id,
-            "backend": backend_of(env_cfg),
+            "backend": "gymnasium" if envpool_env(env) is None else "envpool",
             "run_dir": cfg.run_dir,
             "checkpoint": name.removeprefix("trained-") if cfg.policy == "trained" else None,
             "episodes": cfg.episodes,

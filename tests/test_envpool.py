@@ -3,6 +3,8 @@ or collector batches, partial resets, seeds; which backend ``env.backend`` picks
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -196,3 +198,25 @@ def test_envpool_not_installed_says_how_to_install_and_auto_falls_back(monkeypat
         make_env(EnvConfig(id="CartPole-v1", backend="envpool"))
     assert envpool_env(make_env(EnvConfig(id="CartPole-v1"))) is None
     assert "not installed" in resolve_backend(EnvConfig(id="CartPole-v1"))[1]
+
+
+def test_envpool_is_installed_only_where_its_wheels_were_checked():
+    """The install line brings EnvPool on Linux x86_64, Python >= 3.11; elsewhere the marker
+    leaves it out (the install succeeds and auto is gymnasium)."""
+    tomllib = pytest.importorskip("tomllib")
+    from packaging.markers import default_environment
+    from packaging.requirements import Requirement
+
+    project = tomllib.loads((Path(__file__).parents[1] / "pyproject.toml").read_text())
+    requirements = map(Requirement, project["project"]["dependencies"])
+    (dependency,) = [r for r in requirements if r.name == "envpool"]
+    assert str(dependency.specifier) == ">=1.2.5"
+
+    def installed(system: str, machine: str, python: str) -> bool:
+        where = dict(platform_system=system, platform_machine=machine, python_version=python)
+        return dependency.marker.evaluate({**default_environment(), **where})
+
+    assert installed("Linux", "x86_64", "3.11") and installed("Linux", "x86_64", "3.13")
+    assert not installed("Linux", "x86_64", "3.10")  # no 1.2.5 wheel: pip would pick 0.8
+    assert not installed("Darwin", "arm64", "3.11") and not installed("Windows", "AMD64", "3.12")
+    assert not installed("Linux", "aarch64", "3.12")

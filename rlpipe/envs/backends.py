@@ -46,7 +46,7 @@ def envpool_version() -> str | None:
     """The installed EnvPool's version if it is recent enough to serve, else None."""
     try:
         import envpool
-    except ImportError:
+    except (ImportError, OSError):  # not installed, or its shared libraries do not load here
         return None
     version = envpool.__version__
     parts = tuple(int(p) if p.isdigit() else 0 for p in version.split(".")[:3])
