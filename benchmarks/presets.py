@@ -447,9 +447,16 @@ def _call(args: list[str], log: Path, cwd: Path) -> None:
 
 
 def rlpipe_job(
-    preset: Preset, cfg: Config, seed: int, frames: int | None, episodes: int, out: Path
+    preset: Preset,
+    cfg: Config,
+    seed: int,
+    frames: int | None,
+    episodes: int,
+    out: Path,
+    extra: Sequence[str] = (),
 ) -> Run:
-    """Train the preset as a user would, evaluate it, read its metrics."""
+    """Train the preset as a user would (plus the ``extra`` overrides), evaluate it, read its
+    metrics."""
     run_dir = out / "run"  # not "rlpipe": cwd is on a -m module's path and would shadow it
     out.mkdir(parents=True, exist_ok=True)
     log = out / "rlpipe.log"
@@ -460,6 +467,7 @@ def rlpipe_job(
         # resumable: a checkpoint at every eval, and the same command continues a killed run
         f"checkpoint_every={cfg.eval_every if preset.resumable else 0}",
         f"hydra.run.dir={run_dir}",
+        *extra,
     ] + ([f"total_frames={frames}"] if frames is not None else [])
     finals = sorted(
         (run_dir / "evaluation").glob("trained-*.json"), key=lambda p: p.stat().st_mtime
@@ -659,9 +667,9 @@ def choose_presets(names: list[str] | None) -> list[Preset]:
     return [PRESETS[name] for name in dict.fromkeys(names)]
 
 
-def compose(preset: Preset, frames: int | None) -> Config:
+def compose(preset: Preset, frames: int | None, extra: Sequence[str] = ()) -> Config:
     """The preset's resolved config (budget, eval cadence) as its runs will see it."""
-    overrides = [f"+experiment={preset.experiment}"]
+    overrides = [f"+experiment={preset.experiment}", *extra]
     if frames is not None:
         overrides.append(f"total_frames={frames}")
     try:
@@ -772,6 +780,13 @@ def main() -> None:
     p.add_argument("--frames", type=int, help="override every preset's budget (smoke tests)")
     p.add_argument("--final-episodes", type=int, help="override the final eval's episodes")
     p.add_argument(
+        "--override",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="added to every rlpipe run, e.g. env.backend=envpool (repeatable)",
+    )
+    p.add_argument(
         "--out",
         type=Path,
         help="where the run dirs go (default: a temp dir); runs finished there by an earlier "
@@ -783,7 +798,7 @@ def main() -> None:
     if args.sb3 and importlib.util.find_spec("stable_baselines3") is None:
         sys.exit('presets.py: --sb3 needs stable-baselines3: pip install -e ".[bench]"')
     presets = choose_presets(args.presets)
-    configs = {preset.experiment: compose(preset, args.frames) for preset in presets}
+    configs = {pr.experiment: compose(pr, args.frames, args.override) for pr in presets}
     with tempfile.TemporaryDirectory(prefix="presets-") as tmp:
         out = (args.out or Path(tmp)).resolve()
         print(f"presets: run dirs under {out}", file=sys.stderr)
@@ -800,6 +815,7 @@ def main() -> None:
                     args.frames,
                     episodes,
                     where,
+                    args.override,
                 )
                 group = [(preset.experiment, seed, "rlpipe", ours)]
                 if args.sb3 and preset.sb3 is not None:

@@ -94,14 +94,22 @@ class AlgoConfig:
         check_rules(self, "algo.")
 
 
+ENV_BACKENDS = ("auto", "gymnasium", "envpool")
+
+
 @dataclass
 class EnvConfig:
-    """Which gymnasium environment to build and how many copies to step as one batch."""
+    """Which gymnasium env to build, how many copies to step as one batch, and on what engine.
+
+    ``backend``: see :mod:`rlpipe.envs.backends`."""
 
     id: str = "CartPole-v1"
     num_envs: int = checked(1, "at_least_one")
     max_episode_steps: int | None = checked(None, "optional_at_least_one")  # None: the env's own
     kwargs: dict[str, Any] = field(default_factory=dict)  # passed to gymnasium.make
+    # auto: EnvPool where it is installed and runs the id (a run records the one it used),
+    # else gymnasium; gymnasium; envpool
+    backend: str = checked("auto", choices=ENV_BACKENDS)
 
     def __post_init__(self) -> None:
         check_rules(self, "env.")
@@ -227,7 +235,7 @@ def config_from_yaml(data: bytes, path: Path, *, allow_code: bool = False) -> Co
 def config_from_dict(data: dict[str, Any]) -> Config:
     """Rebuild a :class:`Config` (value checks included) from :func:`config_to_dict` output;
     keys a newer or older version does not know are dropped, missing ones take the default."""
-    data = dict(data)
+    data = _with_legacy_env(data)
     algo = dict(data.pop("algo"))
     check(algo.get("name") in ALGORITHMS, f"unknown algorithm {algo.get('name')!r} in config")
     return Config(
@@ -236,6 +244,15 @@ def config_from_dict(data: dict[str, Any]) -> Config:
         logger=_build(LoggerConfig, data.pop("logger")),
         **{k: v for k, v in data.items() if k in _names(Config)},
     )
+
+
+def _with_legacy_env(data: dict[str, Any]) -> dict[str, Any]:
+    """A copy of a config's containers; an ``env`` without ``backend`` (written before there
+    was a choice) ran on gymnasium."""
+    data = dict(data)
+    if isinstance(data.get("env"), dict):
+        data["env"] = {"backend": "gymnasium", **data["env"]}
+    return data
 
 
 def _names(cls: type) -> set[str]:
@@ -250,7 +267,7 @@ def _build(cls: type, data: dict[str, Any]) -> Any:
 def fingerprint(cfg: Config | dict[str, Any]) -> dict[str, Any]:
     """What decides a run's results, flat (``{"algo.lr": 0.0001, "seed": 0, ...}``): algorithm,
     env, architecture, hyper-parameters and seed; not budgets, cadences, logging or progress."""
-    data = config_to_dict(cfg) if isinstance(cfg, Config) else dict(cfg)
+    data = config_to_dict(cfg) if isinstance(cfg, Config) else _with_legacy_env(cfg)
     algo = dict(data.get("algo") or {})
     schema = config_class(algo.get("name"))
     for key in (*RUN_KEYS, *(schema.not_fingerprinted if schema else ())):

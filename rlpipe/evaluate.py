@@ -32,8 +32,8 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 
 from rlpipe.cli import compose_config, run_entry_point
-from rlpipe.config import EnvConfig
-from rlpipe.envs import make_env
+from rlpipe.config import ENV_BACKENDS, EnvConfig
+from rlpipe.envs import envpool_env, make_env
 from rlpipe.episodes import EvalResult, eval_envs, evaluate
 from rlpipe.errors import check
 from rlpipe.files import check_writable, write_atomic
@@ -66,6 +66,9 @@ class EvaluateConfig:
     video_episodes: int = 1  # how many episodes the mp4 shows, one after the other
     seed: int = 0
     device: str = "cpu"
+    # the env backend the episodes run on (auto, gymnasium, envpool); null: the run's (videos
+    # and render=human always render with gymnasium)
+    backend: str | None = None
     # the JSON summary; null: <run_dir>/evaluation/<policy>[-<ckpt>].json, without a run dir
     # outputs/evaluation/<env>-<policy>.json
     out: str | None = None
@@ -76,6 +79,11 @@ class EvaluateConfig:
     def __post_init__(self) -> None:
         check(self.episodes >= 1, f"episodes must be >= 1, got {self.episodes}")
         check(self.video_episodes >= 1, f"video_episodes must be >= 1, got {self.video_episodes}")
+        check(
+            self.backend in (None, *ENV_BACKENDS),
+            f"backend must be one of {', '.join(ENV_BACKENDS)} or null (the run's); "
+            f"got {self.backend!r}",
+        )
         check(
             self.render in (None, "human"),
             f"render must be human (a live window) or null, got {self.render!r}",
@@ -104,7 +112,11 @@ def _policy(cfg: EvaluateConfig, stack: ExitStack) -> tuple[TensorDictModuleBase
     if cfg.policy == "trained":
         device = resolve_device(cfg.device)
         loaded = load_run(
-            cfg.run_dir, cfg.checkpoint, device=device, allow_env_import=cfg.allow_env_import
+            cfg.run_dir,
+            cfg.checkpoint,
+            device=device,
+            allow_env_import=cfg.allow_env_import,
+            backend=cfg.backend,
         )
         stack.callback(loaded.algo.close)
         return loaded.algo.policy, loaded.cfg.env, f"trained-{loaded.checkpoint.stem}"
@@ -113,6 +125,8 @@ def _policy(cfg: EvaluateConfig, stack: ExitStack) -> tuple[TensorDictModuleBase
         if cfg.run_dir
         else cfg.env
     )
+    if cfg.backend is not None:
+        env_cfg = dataclasses.replace(env_cfg, backend=cfg.backend)
     probe = make_env(env_cfg, num_envs=1)
     stack.callback(probe.close)
     return BASELINES[cfg.policy](probe), env_cfg, cfg.policy
@@ -153,6 +167,7 @@ def run(cfg: EvaluateConfig) -> dict[str, Any]:
         summary: dict[str, Any] = {
             "policy": cfg.policy,
             "env": env_cfg.id,
+            "backend": "gymnasium" if envpool_env(env) is None else "envpool",
             "run_dir": cfg.run_dir,
             "checkpoint": name.removeprefix("trained-") if cfg.policy == "trained" else None,
             "episodes": cfg.episodes,

@@ -18,13 +18,14 @@ from rlpipe.callbacks import make_callbacks
 from rlpipe.config import RUN_KEYS, Config
 from rlpipe.console import say
 from rlpipe.envs import make_env
+from rlpipe.envs.backends import resolve_backend
 from rlpipe.episodes import eval_envs
 from rlpipe.loggers import make_logger, run_card
 from rlpipe.models import object_record
 from rlpipe.outcomes import RunResult
 from rlpipe.rundir import RunDir
 from rlpipe.runner import Runner
-from rlpipe.runtime import resolve_device, seed_everything, set_threads
+from rlpipe.runtime import env_threads, resolve_device, seed_everything, set_threads
 
 SEED_RANGE = 2**32  # environment seeds derived from cfg.seed wrap around at numpy's limit
 
@@ -56,16 +57,21 @@ def train(
         cfg = replace(cfg, algo=replace(cfg.algo, network=object_record(network)))
     device = resolve_device(cfg.device)
     run = RunDir(cfg.resume or run_dir)
+    # auto becomes the backend used (config.yaml records it); a run continued keeps its own
+    recorded = run.read_config(allow_code=True).env.backend if run.is_run() else None
+    env_cfg, backend_line = resolve_backend(cfg.env, recorded)
+    cfg = replace(cfg, env=env_cfg)
     start = run.open(cfg, required=bool(cfg.resume))
     frames = 0 if start is None else start.frames
     seed_everything(cfg.seed)
     set_threads(cfg.threads, device)
     eval_seed = (cfg.seed + 10_000) % SEED_RANGE  # every evaluation: these episodes' starts
+    envs = partial(make_env, cfg.env, threads=env_threads(cfg.threads))
     with ExitStack() as stack:
-        eval_env = make_env(cfg.env, num_envs=eval_envs(cfg.eval_episodes), seed=eval_seed)
+        eval_env = envs(num_envs=eval_envs(cfg.eval_episodes), seed=eval_seed)
         stack.callback(eval_env.close)
         algo = make_algorithm(  # a resumed run restarts its episodes as the checkpoint says
-            partial(make_env, cfg.env, seed=cfg.seed),
+            partial(envs, seed=cfg.seed),
             cfg.algo,
             device=device,
             network=network,
@@ -87,6 +93,7 @@ def train(
             with start.applying():
                 runner.restore(start.state)
         with run.session(cfg, frames, cfg.keep_checkpoints):  # checked: from here on it is written
+            say(f"rlpipe: {backend_line}")
             if start is not None and not runner.finished:  # a finished run says so itself
                 say(f"rlpipe: resuming {run.path} from {start.path.name} at {frames:,} frames")
             if on_start is not None:
@@ -112,6 +119,7 @@ def load_run(
     num_envs: int = 1,
     allow_env_import: bool = False,
     network: nn.Module | None = None,
+    backend: str | None = None,
 ) -> LoadedRun:
     """Rebuild a run from its ``config.yaml`` and a checkpoint, as a :class:`LoadedRun`.
 
@@ -122,10 +130,13 @@ def load_run(
     ``allow_env_import``: see :meth:`RunDir.read_config`. ``network``: the module a run was
     trained with in place of the default (a Python object, which ``config.yaml`` cannot hold; a
     ``algo.network`` spec is rebuilt from the config). The caller owns ``LoadedRun.algo`` and
-    must ``close()`` it.
+    must ``close()`` it. ``backend``: the env backend to rebuild it on (``env.backend``'s
+    choices; None: the one the run recorded), which ``LoadedRun.cfg`` then names.
     """
     run = RunDir(run_dir)
     cfg = run.read_config(allow_code=allow_env_import)
+    if backend is not None:
+        cfg = replace(cfg, env=replace(cfg.env, backend=backend))
     found = run.read_checkpoint(checkpoint)
     factory = partial(make_env, cfg.env, num_envs=num_envs, seed=cfg.seed)
     algo = make_algorithm(factory, cfg.algo, device=device, network=network)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import random
 from typing import Any
 
@@ -39,6 +40,15 @@ def set_threads(threads: int | str, device: torch.device) -> None:
         threads = 1 if device.type == "cpu" else 0
     if threads:
         torch.set_num_threads(threads)
+
+
+def env_threads(threads: int | str) -> int:
+    """EnvPool's worker threads under rlpipe's ``threads`` setting: ``"auto"`` is 1 (a training
+    run's env copies cost little next to its learning; ARS sets its own from ``algo.workers``),
+    ``0`` one per core, ``N`` N."""
+    if threads == "auto":
+        return 1
+    return threads or os.cpu_count() or 1
 
 
 def rng_state() -> dict[str, Any]:

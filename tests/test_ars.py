@@ -37,8 +37,10 @@ from rlpipe.errors import RlpipeError
 from rlpipe.models import ClampAction
 from rlpipe.normalizer import Normalizer
 
-CARTPOLE = EnvConfig(id="CartPole-v1")
-PENDULUM = EnvConfig(id="Pendulum-v1")
+# the gymnasium backend: these tests are about its rollouts and the worker processes (ARS on
+# EnvPool, one pool in this process: tests/test_envpool_runs.py)
+CARTPOLE = EnvConfig(id="CartPole-v1", backend="gymnasium")
+PENDULUM = EnvConfig(id="Pendulum-v1", backend="gymnasium")
 
 
 def test_update_rule_by_hand():

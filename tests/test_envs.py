@@ -82,7 +82,7 @@ def test_non_flat_observation_is_rejected(image_env_id):
     ],
 )
 def test_vectorization_choice(env_id, vectorization, render_mode, batched):
-    cfg = EnvConfig(id=env_id, num_envs=2, max_episode_steps=9, kwargs={})
+    cfg = EnvConfig(id=env_id, num_envs=2, max_episode_steps=9, kwargs={}, backend="gymnasium")
     env = make_env(cfg, render_mode=render_mode, vectorization=vectorization)
     assert isinstance(env.base_env._env, gym.vector.SyncVectorEnv) is not batched
     if batched:
@@ -95,6 +95,6 @@ def test_vectorization_choice(env_id, vectorization, render_mode, batched):
 
 def test_bad_vectorization_is_a_clear_error():
     with pytest.raises(RlpipeError, match="no vector implementation"):
-        make_env(EnvConfig(id="CartPole-v1"), vectorization="vector")
+        make_env(EnvConfig(id="CartPole-v1", backend="gymnasium"), vectorization="vector")
     with pytest.raises(RlpipeError, match="auto, sync or vector"):
         make_env(EnvConfig(id="CartPole-v1"), vectorization="async")

@@ -328,9 +328,8 @@ def test_run_dir_env_import_allowed(
 ) -> None:
     copy = copy_run(run_dir, tmp_path / "run")
     config = copy / "config.yaml"
-    config.write_text(
-        config.read_text().replace("id: CartPole-v1", "id: rlpipe_probe_env:ProbeCartPole-v0")
-    )
+    text = config.read_text().replace("backend: envpool", "backend: gymnasium")  # its own id
+    config.write_text(text.replace("id: CartPole-v1", "id: rlpipe_probe_env:ProbeCartPole-v0"))
     marker = write_probe_module(tmp_path)
     monkeypatch.syspath_prepend(str(tmp_path))
     main([f"run_dir={copy}", "policy=random", "episodes=2", "allow_env_import=true"])

@@ -532,7 +532,8 @@ def test_evaluate_refuses_a_run_dir_whose_env_would_import_a_module(
     from rlpipe.evaluate import main
 
     config = run_copy / "config.yaml"
-    config.write_text(config.read_text().replace("id: CartPole-v1", "id: evilmod:Foo-v0"))
+    text = config.read_text().replace("backend: envpool", "backend: auto")  # as a custom env's
+    config.write_text(text.replace("id: CartPole-v1", "id: evilmod:Foo-v0"))
     marker = tmp_path / "evilmod-was-imported"
     (tmp_path / "evilmod.py").write_text(f"open({str(marker)!r}, 'w').close()\n")
     monkeypatch.chdir(tmp_path)  # as `python -m rlpipe.evaluate` run here: importable

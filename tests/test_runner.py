@@ -15,6 +15,7 @@ from rlpipe.algos import DQN, DQNConfig
 from rlpipe.checkpoint import load_checkpoint
 from rlpipe.config import Config, EnvConfig, LoggerConfig
 from rlpipe.envs import make_env
+from rlpipe.envs.backends import backend_of
 from rlpipe.episodes import evaluate
 from rlpipe.loggers import make_logger
 from rlpipe.rundir import RunDir
@@ -99,7 +100,8 @@ def test_a_runner_run_is_a_run_for_evaluate_plot_and_resume(tmp_path):
     algo.close()
     eval_env.close()
     cfg = RunDir(run_dir).read_config()
-    assert (cfg.env, cfg.seed, cfg.total_frames, cfg.eval_every) == (env_cfg, 3, 64, 32)
+    used = replace(env_cfg, backend=backend_of(env_cfg))  # config.yaml names the backend used
+    assert (cfg.env, cfg.seed, cfg.total_frames, cfg.eval_every) == (used, 3, 64, 32)
     assert cfg.algo == DQNConfig(
         frames_per_batch=16,
         total_frames=64,

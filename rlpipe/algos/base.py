@@ -19,6 +19,7 @@ from torchrl.envs import EnvBase
 
 from rlpipe.config import RUN_KEYS, AlgoConfig, Config, EnvConfig
 from rlpipe.envs import EnvFactory, make_env
+from rlpipe.envs.backends import backend_of
 from rlpipe.models import mlp, object_record, user_network
 from rlpipe.registry import config_class
 
@@ -146,6 +147,7 @@ class Algorithm:
         if not (known and by_make_env and factory.args and isinstance(factory.args[0], EnvConfig)):
             return None
         env, options = factory.args[0], factory.keywords
+        env = replace(env, backend=backend_of(env))  # the one its envs were built on
         if options.get("num_envs"):
             env = replace(env, num_envs=options["num_envs"])
         seed = options.get("seed")

@@ -3,6 +3,7 @@ running observation normaliser, evolved by :class:`rlpipe.algos.ars.ARSSearch`."
 
 from __future__ import annotations
 
+import os
 from functools import partial
 from typing import Any
 
@@ -15,7 +16,7 @@ from torchrl.envs import EnvBase
 from rlpipe.algos.ars.search import ARSSearch
 from rlpipe.algos.base import Algorithm, Metrics
 from rlpipe.algos.configs import SEARCH_PARAMS, ARSConfig, RayConfig
-from rlpipe.envs import is_discrete, num_actions, observation_size, sub_envs
+from rlpipe.envs import envpool_env, episode_limit, is_discrete, num_actions, observation_size
 from rlpipe.errors import RlpipeError
 from rlpipe.models import ArgmaxAction, ClampAction, mlp, user_network
 from rlpipe.normalizer import Normalizer
@@ -34,7 +35,9 @@ class ARS(Algorithm):
     One env copy is built for the specs and closed; the ``2N`` perturbed policies roll out on
     copies that ``env_factory(num_envs=n, seed=s, vectorization="sync")`` builds, spread over
     ``cfg.workers`` processes (``cfg.backend="ray"``: Ray actors, see ``cfg.ray``), which start
-    with the first :meth:`train_step`. One :meth:`train_step` is one ARS iteration; ``frames``
+    with the first :meth:`train_step`. On the EnvPool backend (``env.backend``) the local
+    backend rolls out all ``2N`` on one pool in this process instead, ``cfg.workers`` being its
+    threads (0: one per core). One :meth:`train_step` is one ARS iteration; ``frames``
     counts every step of every perturbed rollout. ARS runs on the CPU whatever ``device`` says:
     its per-step work is one small batched matmul, next to the env's physics.
 
@@ -56,16 +59,22 @@ class ARS(Algorithm):
         probe = env_factory(num_envs=1, vectorization="sync")
         try:
             self.policy, normalizer = make_ars_policy(probe, cfg, self.user_network)
-            spec = sub_envs(probe)[0].spec
+            pooled, steps = envpool_env(probe) is not None, episode_limit(probe)
         finally:
             probe.close()
-        limit = min(cfg.episode_length, (spec and spec.max_episode_steps) or cfg.episode_length)
+        limit = min(cfg.episode_length, steps or cfg.episode_length)
         self.budget_frames = cfg.iterations * 2 * cfg.num_directions * limit  # at most
         seed = int(torch.randint(0, 2**31 - 1, ()))  # from the run's seeded torch generator
+        params = {key: getattr(cfg, key) for key in SEARCH_PARAMS}  # the same names and checks
+        rollout_factory = partial(env_factory, vectorization="sync")
+        if pooled and cfg.backend == "local":  # one pool here, its threads the workers
+            threads = min(cfg.workers or os.cpu_count() or 1, 2 * cfg.num_directions)
+            rollout_factory = partial(rollout_factory, threads=threads)
+            params["workers"] = 1
         self.search = ARSSearch(
             self.policy,
-            partial(env_factory, vectorization="sync"),
-            **{key: getattr(cfg, key) for key in SEARCH_PARAMS},  # the same names and checks
+            rollout_factory,
+            **params,
             max_steps=cfg.episode_length,
             reward_offset=cfg.alive_bonus_offset,
             reward_clip=1.0 if cfg.reward_clip else None,

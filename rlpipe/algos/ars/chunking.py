@@ -12,13 +12,15 @@ when the workers start.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 
 import numpy as np
 from tensordict.nn import TensorDictModuleBase
 from torch.nn.utils import parameters_to_vector
+from torchrl.envs import EnvBase
 
 from rlpipe.algos.ars.population import PopulationPolicy
-from rlpipe.envs import EnvFactory, sub_envs
+from rlpipe.envs import EnvFactory, envpool_env, sub_envs
 
 __all__ = ["MAX_CHUNKS", "OVERHEAD", "chunks_per_worker", "measured_costs"]
 
@@ -34,14 +36,10 @@ def measured_costs(
     (random actions on one copy from ``env_factory``)."""
     env = env_factory(num_envs=1, seed=seed)
     try:
-        inner = sub_envs(env)[0]
-        inner.action_space.seed(seed)
-        observation, _ = inner.reset(seed=seed)
+        step, observation = _random_steps(env, seed)
         start = time.perf_counter()
         for _ in range(_ENV_STEPS):
-            observation, _, terminated, truncated, _ = inner.step(inner.action_space.sample())
-            if terminated or truncated:
-                observation, _ = inner.reset()
+            observation = step()
         env_step = (time.perf_counter() - start) / _ENV_STEPS
     finally:
         env.close()
@@ -53,6 +51,25 @@ def measured_costs(
     for _ in range(_CALLS):
         forward.outputs({"observation": batch.copy()})
     return (time.perf_counter() - start) / _CALLS, env_step
+
+
+def _random_steps(env: EnvBase, seed: int) -> tuple[Callable[[], np.ndarray], np.ndarray]:
+    """A function that steps one copy of ``env``'s env with a random action (a new episode
+    after the last) and returns the observation, and the first observation."""
+    pooled = envpool_env(env)
+    if pooled is not None:  # its pool resets a finished copy itself
+        pool = pooled.pool
+        space = pool.action_space
+        space.seed(seed)
+        return lambda: pool.step(np.asarray(space.sample())[None])[0][0], pool.reset()[0][0]
+    inner = sub_envs(env)[0]
+    inner.action_space.seed(seed)
+
+    def step() -> np.ndarray:
+        observation, _, terminated, truncated, _ = inner.step(inner.action_space.sample())
+        return inner.reset()[0] if terminated or truncated else observation
+
+    return step, inner.reset(seed=seed)[0]
 
 
 def chunks_per_worker(

@@ -37,7 +37,9 @@ class ARSSearch:
             statistics) are not. The search changes this object's parameters in place.
         env_factory: ``env_factory(num_envs=n, seed=s)`` builds ``n`` rollout env copies: a
             TorchRL env over a gymnasium ``SyncVectorEnv``, such as
-            ``functools.partial(rlpipe.make_env, env_cfg, vectorization="sync")``.
+            ``functools.partial(rlpipe.make_env, env_cfg, vectorization="sync")``, or a
+            :func:`rlpipe.make_env` env on the EnvPool backend (its rollouts then step a pool
+            of the same env, ``threads`` as the env was built with).
         num_directions: N, directions sampled per iteration (``2N`` rollouts). Default 16.
         num_best: b, directions kept for the update, between 1 and N. Default None: N.
         step_size: α, the update's step size (> 0). Default 0.02.
@@ -95,7 +97,10 @@ class ARSSearch:
     same θ, for envs whose ``reset(seed=...)`` fixes the episode. Box2D envs (BipedalWalker,
     LunarLander) keep their world across resets, so there an episode also depends on what its
     env copy ran before: worker counts, and a resumed search's fresh env copies, change the
-    episodes.
+    episodes. On EnvPool (``env_factory`` on the ``envpool`` backend) every rollout runs on a
+    fresh pool whose copies are seeded with the members' episode seeds, so an episode depends on
+    its seed and parameters alone, Box2D included (EnvPool cannot reseed at reset; its episodes
+    for a seed are not gymnasium's).
     """
 
     def __init__(

@@ -1,0 +1,115 @@
+"""Which engine steps an env config's copies: ``env.backend`` (auto, gymnasium or envpool)
+resolved to the one a run uses, with the line that announces it. Imports no torch."""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import replace
+
+from rlpipe.config import EnvConfig
+from rlpipe.errors import RlpipeError
+
+__all__ = [
+    "ENVPOOL_IDS",
+    "ENVPOOL_INSTALL",
+    "backend_of",
+    "envpool_task",
+    "envpool_version",
+    "resolve_backend",
+]
+
+ENVPOOL_INSTALL = 'pip install "envpool>=1.2.5" (Linux x86_64, Python >= 3.11)'
+MIN_ENVPOOL = (1, 2, 5)  # partial steps (env_id=) and per-env seeds, as this backend uses them
+# gymnasium ids whose EnvPool twins were checked against gymnasium's: the same spaces and time
+# limits, episode returns the same in distribution (docs/api.md "Environments")
+ENVPOOL_IDS = (
+    "Acrobot-v1",
+    "BipedalWalker-v3",
+    "BipedalWalkerHardcore-v3",
+    "CartPole-v0",
+    "CartPole-v1",
+    "LunarLander-v3",
+    "LunarLanderContinuous-v3",
+    "MountainCar-v0",
+    "MountainCarContinuous-v0",
+    "Pendulum-v1",
+)
+# gymnasium kwargs that EnvPool honours by building another id (it takes no kwargs)
+ENVPOOL_VARIANTS = {
+    ("BipedalWalker-v3", "hardcore"): "BipedalWalkerHardcore-v3",
+    ("LunarLander-v3", "continuous"): "LunarLanderContinuous-v3",
+}
+
+
+@functools.cache
+def envpool_version() -> str | None:
+    """The installed EnvPool's version if it is recent enough to serve, else None."""
+    try:
+        import envpool
+    except (ImportError, OSError):  # not installed, or its shared libraries do not load here
+        return None
+    version = envpool.__version__
+    parts = tuple(int(p) if p.isdigit() else 0 for p in version.split(".")[:3])
+    return version if parts >= MIN_ENVPOOL else None
+
+
+def envpool_task(cfg: EnvConfig) -> str | None:
+    """EnvPool's id for ``cfg`` (its own, or the variant its ``env.kwargs`` select), or None
+    when EnvPool cannot honour the kwargs."""
+    task = cfg.id
+    for key, value in cfg.kwargs.items():
+        variant = ENVPOOL_VARIANTS.get((cfg.id, key))
+        if variant is None or not isinstance(value, bool):
+            return None
+        task = variant if value else task
+    return task
+
+
+def _why_not_envpool(cfg: EnvConfig) -> str | None:
+    """Why EnvPool cannot run ``cfg`` (None: it can)."""
+    if cfg.id not in ENVPOOL_IDS:
+        return (
+            f"EnvPool runs only the ids rlpipe checked against gymnasium's "
+            f"({', '.join(ENVPOOL_IDS)}), not {cfg.id!r}"
+        )
+    if envpool_task(cfg) is None:
+        return f"EnvPool cannot honour env.kwargs {cfg.kwargs} (it builds {cfg.id} from its id)"
+    if envpool_version() is None:
+        version = ".".join(map(str, MIN_ENVPOOL))
+        return f"EnvPool >= {version} is not installed (install it: {ENVPOOL_INSTALL})"
+    return None
+
+
+def backend_of(cfg: EnvConfig, render_mode: str | None = None) -> str:
+    """The backend that builds ``cfg``'s envs: ``gymnasium`` or ``envpool``.
+
+    ``auto`` is EnvPool where it is installed and runs the id with these kwargs, else
+    gymnasium; ``envpool`` where it cannot is one line naming why. Rendering
+    (``render_mode``: videos, ``render=human``) is always gymnasium's.
+    """
+    if render_mode is not None or cfg.backend == "gymnasium":
+        return "gymnasium"
+    why = _why_not_envpool(cfg)
+    if why is not None and cfg.backend == "envpool":
+        raise RlpipeError(f"env.backend=envpool: {why}; or set env.backend=gymnasium (or auto)")
+    return "gymnasium" if why is not None else "envpool"
+
+
+def resolve_backend(cfg: EnvConfig, recorded: str | None = None) -> tuple[EnvConfig, str]:
+    """``cfg`` with ``backend`` set to the one a run uses, and the line that announces it.
+
+    ``recorded``: the backend the run dir being continued recorded; ``auto`` takes it, so a
+    resume rebuilds the same envs (a recorded ``envpool`` must then be available).
+    """
+    if cfg.backend == "auto" and recorded in ("gymnasium", "envpool"):
+        chosen = replace(cfg, backend=recorded)
+        backend_of(chosen)  # EnvPool gone since: one line saying so
+        return chosen, f"env backend {recorded} (auto: the one the run dir recorded)"
+    backend = backend_of(cfg)
+    if cfg.backend != "auto":
+        why = f"env.backend={cfg.backend}"
+    elif backend == "envpool":
+        why = f"auto: EnvPool {envpool_version()} runs {cfg.id}; env.backend=gymnasium to change"
+    else:
+        why = f"auto: {_why_not_envpool(cfg)}"
+    return replace(cfg, backend=backend), f"env backend {backend} ({why})"
