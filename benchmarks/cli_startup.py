@@ -18,10 +18,9 @@ import subprocess
 import sys
 import tempfile
 import time
-from contextlib import contextmanager
 from pathlib import Path
 
-from common import machine, publish_section, table
+from common import busy, machine, publish_section, table
 
 COMMANDS = {
     "--help": ["-m", "rlpipe", "--help"],
@@ -42,18 +41,6 @@ def seconds(args: list[str], pythonpath: str | None) -> float:
     start = time.perf_counter()  # from a neutral directory: -m puts the working one first
     subprocess.run([sys.executable, *args], env=env, capture_output=True, cwd=NEUTRAL)
     return time.perf_counter() - start
-
-
-@contextmanager
-def busy(on: bool):
-    """A CPU-bound competitor process while the block runs (``on``)."""
-    proc = subprocess.Popen([sys.executable, "-c", "while True: pass"]) if on else None
-    try:
-        yield
-    finally:
-        if proc is not None:
-            proc.kill()
-            proc.wait()
 
 
 def measure(rounds: int, before: str | None, competitor: bool) -> list[list[str]]:

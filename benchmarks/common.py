@@ -7,8 +7,11 @@ import csv
 import os
 import platform
 import re
+import subprocess
+import sys
 import time
 from collections.abc import Sequence
+from contextlib import contextmanager
 from datetime import date
 from functools import partial
 from importlib.metadata import PackageNotFoundError, version
@@ -19,6 +22,18 @@ from rlpipe.cli import compose_run
 from rlpipe.envs import make_env
 from rlpipe.episodes import evaluate
 from rlpipe.runtime import seed_everything
+
+
+@contextmanager
+def busy(on: bool):
+    """A CPU-bound competitor process while the block runs (``on``)."""
+    proc = subprocess.Popen([sys.executable, "-c", "while True: pass"]) if on else None
+    try:
+        yield
+    finally:
+        if proc is not None:
+            proc.kill()
+            proc.wait()
 
 
 def parser(description: str) -> argparse.ArgumentParser:

@@ -24,10 +24,9 @@ import subprocess
 import sys
 import tempfile
 import time
-from contextlib import contextmanager
 from pathlib import Path
 
-from common import machine, publish_section, table
+from common import busy, machine, publish_section, table
 
 # frames timed per preset (the preset's own budget is its learning check's)
 FRAMES = {"dqn_cartpole": 20_000, "sac_pendulum": 5_000, "ppo_cartpole": 20_480}
@@ -84,18 +83,6 @@ def _rlpipe(preset: str, frames: int, seed: int) -> dict:
         "gradient_steps": steps,
         "samples": steps * BATCH[preset],
     }
-
-
-@contextmanager
-def busy(on: bool):
-    """A CPU-bound competitor process while the block runs (``on``)."""
-    proc = subprocess.Popen([sys.executable, "-c", "while True: pass"]) if on else None
-    try:
-        yield
-    finally:
-        if proc is not None:
-            proc.kill()
-            proc.wait()
 
 
 def measure(kind: str, preset: str, frames: int, learn: bool = False) -> dict:

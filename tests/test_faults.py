@@ -765,6 +765,28 @@ def test_a_stopped_dqn_run_logs_no_row_the_uninterrupted_one_does_not(
         assert_same_run(run_dir, reference_dir)
 
 
+def _stopped_within_ten_seconds(
+    proc: subprocess.Popen, ready: Callable[[], None], settle: float
+) -> str:
+    """SIGTERM to ``proc`` once ``ready()`` returns and ``settle`` seconds more have passed; its
+    stderr, after checking that it exited by the signal within ten seconds of it."""
+    try:
+        ready()
+        time.sleep(settle)
+        assert proc.poll() is None, "the run ended before the signal"
+        sent = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        _, stderr = proc.communicate(timeout=120)
+        took = time.monotonic() - sent
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 128 + signal.SIGTERM, stderr
+    assert took <= 10, f"took {took:.1f} s to stop after SIGTERM"
+    return stderr
+
+
 @FAULTS
 def test_reinforce_stops_within_seconds_of_sigterm_and_resumes_exactly(tmp_path):
     """A long REINFORCE epoch (6,000 episodes on 100 lock-step copies) cut by SIGTERM: the run
@@ -783,20 +805,11 @@ def test_reinforce_stops_within_seconds_of_sigterm_and_resumes_exactly(tmp_path)
     ]
     tag = uuid.uuid4().hex
     proc = popen(*args, cwd=tmp_path, tag=tag)
-    try:
+
+    def ready() -> None:
         _wait_for(lambda: list((run_dir / "checkpoints").glob("ckpt_*.pt")), proc, "epoch 1")
-        time.sleep(0.5)
-        assert proc.poll() is None, "the run ended before the signal"
-        sent = time.monotonic()
-        proc.send_signal(signal.SIGTERM)
-        _, stderr = proc.communicate(timeout=120)
-        took = time.monotonic() - sent
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-    assert proc.returncode == 128 + signal.SIGTERM, stderr
-    assert took <= 10, f"took {took:.1f} s to stop after SIGTERM"
+
+    _stopped_within_ten_seconds(proc, ready, settle=0.5)
     result = rlpipe(*args, cwd=tmp_path, tag=tag)
     assert result.returncode == 0, result.stderr
     reference_dir = tmp_path / "reference"
@@ -833,24 +846,15 @@ def test_mbrl_honours_sigterm_within_ten_seconds(tmp_path, during):
         args.append("eval_episodes=1")  # the first checkpoint comes after the first evaluation
     tag = uuid.uuid4().hex
     proc = popen(*args, cwd=tmp_path, tag=tag)
-    try:
+
+    def ready() -> None:
         if during == "eval":  # the first iteration (one 200-step episode) ends, then it evaluates
             episodes = run_dir / "metrics" / "scalars" / "train" / "episode_return.csv"
             _wait_for(lambda: [episodes] if episodes.exists() else [], proc, "first episode")
         else:  # the first checkpoint is written, then the second iteration runs
             _wait_for(lambda: list(checkpoints.glob("ckpt_*.pt")), proc, "first checkpoint")
-        time.sleep(1.0)
-        assert proc.poll() is None, "the run ended before the signal"
-        sent = time.monotonic()
-        proc.send_signal(signal.SIGTERM)
-        _, stderr = proc.communicate(timeout=120)
-        took = time.monotonic() - sent
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-    assert proc.returncode == 128 + signal.SIGTERM, stderr
-    assert took <= 10, f"took {took:.1f} s to stop after SIGTERM"
+
+    stderr = _stopped_within_ten_seconds(proc, ready, settle=1.0)
     assert f"resume={run_dir}" in stderr.strip().splitlines()[-1], stderr
     assert list(checkpoints.glob("ckpt_*.pt"))
     RunDir(checkpoints.parent).read_checkpoint()
