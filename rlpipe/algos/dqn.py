@@ -1,5 +1,5 @@
 """DQN assembled from TorchRL parts: QValueActor, EGreedyModule, Collector, ReplayBuffer,
-DQNLoss (Huber) and SoftUpdate (HardUpdate for tau=1)."""
+DQNLoss (Huber; DirectDQNLoss) and SoftUpdate (HardUpdate for tau=1)."""
 
 from __future__ import annotations
 
@@ -11,10 +11,11 @@ from tensordict.nn import TensorDictSequential
 from torchrl.data.postprocs import MultiStep
 from torchrl.envs import EnvBase
 from torchrl.modules import EGreedyModule, QValueActor
-from torchrl.objectives import DQNLoss, HardUpdate
+from torchrl.objectives import HardUpdate
 
 from rlpipe.algos.base import TRANSITION_KEYS, Metrics, batch_steps
 from rlpipe.algos.configs import DQNConfig
+from rlpipe.algos.dqn_loss import DirectDQNLoss
 from rlpipe.algos.offpolicy import ForeachSoftUpdate, OffPolicy
 from rlpipe.envs import is_discrete, observation_size
 from rlpipe.errors import RlpipeError, check
@@ -82,7 +83,7 @@ class DQN(OffPolicy):
             spec, eps_init=cfg.eps_start, eps_end=cfg.eps_end, device=self.device
         )
         self.exploration.eps.fill_(epsilon(0, cfg))
-        self.loss = DQNLoss(
+        self.loss = DirectDQNLoss(  # DQNLoss, its forward on plain tensors
             self.policy,
             loss_function=cfg.loss,
             delay_value=True,
