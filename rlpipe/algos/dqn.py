@@ -15,7 +15,7 @@ from torchrl.objectives import HardUpdate
 
 from rlpipe.algos.base import TRANSITION_KEYS, Metrics, batch_steps
 from rlpipe.algos.configs import DQNConfig
-from rlpipe.algos.dqn_loss import DirectDQNLoss
+from rlpipe.algos.direct import DirectDQNLoss
 from rlpipe.algos.offpolicy import ForeachSoftUpdate, OffPolicy
 from rlpipe.envs import is_discrete, observation_size
 from rlpipe.errors import RlpipeError, check

@@ -1,5 +1,6 @@
 """SAC assembled from TorchRL parts: a tanh-Gaussian ProbabilisticActor, twin Q networks, the
-Collector, a ReplayBuffer, SACLoss (automatic entropy tuning) and a soft target update."""
+Collector, a ReplayBuffer, SACLoss (automatic entropy tuning; its forward on plain tensors) and a
+soft target update."""
 
 from __future__ import annotations
 
@@ -10,9 +11,9 @@ from torch import nn
 from torchrl.data import Bounded
 from torchrl.envs import EnvBase
 from torchrl.modules import MLP, ProbabilisticActor, TanhNormal
-from torchrl.objectives import SACLoss
 
 from rlpipe.algos.configs import SACConfig
+from rlpipe.algos.direct import DirectSACLoss
 from rlpipe.algos.offpolicy import ForeachSoftUpdate, OffPolicy
 from rlpipe.envs import is_discrete, observation_size
 from rlpipe.errors import RlpipeError
@@ -64,7 +65,7 @@ class SAC(OffPolicy):
             ["observation", "action"],
             ["state_action_value"],
         ).to(self.device)
-        self.loss = SACLoss(
+        self.loss = DirectSACLoss(  # SACLoss, its forward on plain tensors
             self.policy,
             qvalue,
             num_qvalue_nets=2,

@@ -1,0 +1,211 @@
+"""TorchRL's loss modules with their forward on plain tensors: the same parameters, state dict,
+target updaters and maths, without moving every minibatch through TensorDicts and swapping the
+parameters into a network for each call.
+
+TorchRL's functional losses put their parameters into a meta copy of each network
+(``to_module``) for every network call, and route every intermediate through a TensorDict: on
+the small networks of classic-control tasks that costs more than the maths. Each loss here
+subclasses TorchRL's, keeps its parameters, keys and value estimator, and computes its forward on
+copies of the networks bound once to those parameters (:class:`Bound`); tests compare each with
+TorchRL's forward (losses, gradients, priorities).
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+
+import torch
+import torch.nn.functional as F
+from tensordict import TensorDict, TensorDictBase
+from torch import nn
+from torchrl.modules import TanhNormal
+from torchrl.modules.distributions.utils import safetanh_noeps
+from torchrl.objectives import DQNLoss, SACLoss
+from torchrl.objectives.utils import distance_loss
+
+from rlpipe.models import TensorModule
+
+LOG_SQRT_2PI = math.log(math.sqrt(2 * math.pi))  # of the Normal's log-density
+
+
+def inner_network(module: nn.Module) -> TensorModule:
+    """The one :class:`~rlpipe.models.TensorModule` inside ``module`` (a TorchRL actor or value
+    operator): the plain network the direct forwards call."""
+    inner = [m for m in module.modules() if isinstance(m, TensorModule)]
+    if len(inner) != 1:
+        raise ValueError(f"a direct loss needs one TensorModule inside {type(module).__name__}")
+    return inner[0]
+
+
+def bind(module: nn.Module, params: TensorDictBase) -> nn.Module:
+    """A copy of ``module`` (a loss's meta copy: no data is copied) whose parameters are the
+    tensors of ``params`` for good; returns its plain network."""
+    twin = copy.deepcopy(module)
+    params.to_module(twin)
+    return inner_network(twin).module
+
+
+class Bound:
+    """The networks a direct forward calls (``loss._networks()``), made at the first call and
+    again when the loss's parameter tensors are other ones (a move to another device); kept
+    outside what ``nn.Module`` registers, so the state dict stays TorchRL's."""
+
+    def __init__(self) -> None:
+        self.owner: tuple[int, ...] = ()
+        self.nets: tuple = ()
+
+    def __call__(self, loss: nn.Module) -> tuple:
+        owner = tuple(id(p) for p in loss.parameters())
+        if owner != self.owner:
+            with torch.enable_grad():  # views of stacked parameters carry their gradients
+                self.nets, self.owner = loss._networks(), owner
+        return self.nets
+
+    def __deepcopy__(self, memo: dict) -> Bound:  # a copy of the loss binds its own parameters
+        return Bound()
+
+
+class DirectDQNLoss(DQNLoss):
+    """``DQNLoss`` (a ``QValueActor`` over one :class:`~rlpipe.models.TensorModule`, a
+    categorical action space, TorchRL's TD(0) value estimator) whose :meth:`forward` computes
+    what ``DQNLoss.forward`` computes: the chosen action's value, double DQN's online argmax and
+    target value or the target's max, ``r + γ^k (1 - terminated) V'``, the distance loss, the
+    ``td_error`` priority."""
+
+    def __init__(self, value_network: nn.Module, **kwargs) -> None:
+        super().__init__(value_network, **kwargs)
+        if self.action_space != "categorical":
+            raise ValueError("DirectDQNLoss needs a categorical action space")
+        self.in_key = inner_network(self.value_network).in_keys[0]
+        self._bound = Bound()
+
+    def _networks(self) -> tuple[nn.Module, nn.Module]:
+        params = self.value_network_params, self.target_value_network_params
+        return tuple(bind(self.value_network, p) for p in params)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDict:
+        online, target = self._bound(self)
+        action = tensordict.get(self.tensor_keys.action)
+        values = online(tensordict.get(self.in_key))
+        if action.ndim != values.ndim:
+            action = action.unsqueeze(-1)
+        chosen = values.gather(-1, action).squeeze(-1)
+        with torch.no_grad():
+            next_obs = tensordict.get(("next", self.in_key))
+            next_values = target(next_obs)
+            if self.double_dqn:
+                best = online(next_obs).argmax(-1, keepdim=True)
+                next_value = next_values.gather(-1, best)
+            else:
+                next_value = next_values.max(-1, keepdim=True).values
+            target_value = td0_target(self, tensordict, next_value).squeeze(-1)
+            priority = (chosen - target_value).pow(2).unsqueeze(-1)
+        tensordict.set(self.tensor_keys.priority, priority, inplace=True)
+        loss = distance_loss(chosen, target_value, self.loss_function)
+        weights = None
+        if self.use_prioritized_weights in (True, "auto"):
+            weights = tensordict.get(self.tensor_keys.priority_weight, None)
+        return TensorDict(loss=self._reduce_loss(loss, tensordict=tensordict, weights=weights))
+
+
+def td0_target(loss: nn.Module, tensordict: TensorDictBase, next_value: torch.Tensor):
+    """TorchRL's TD(0) value estimate of ``loss``'s estimator: ``r + γ^k (1 - terminated) V'``
+    (``k``: the n-step transitions' ``steps_to_next_obs``, else 1)."""
+    estimator = loss.value_estimator
+    keys, nxt = estimator.tensor_keys, tensordict.get("next")
+    reward = nxt.get(keys.reward)
+    gamma = estimator.gamma.to(reward.device)
+    steps = tensordict.get(keys.steps_to_next_obs, None)
+    if steps is not None:
+        gamma = gamma ** steps.view_as(reward)
+    return reward + gamma * (~nxt.get(keys.terminated)).int() * next_value
+
+
+class DirectSACLoss(SACLoss):
+    """``SACLoss`` (version 2: no state-value network; a ``ProbabilisticActor`` and the Q
+    network each over one :class:`~rlpipe.models.TensorModule`) whose :meth:`forward` computes
+    what ``SACLoss.forward`` computes, drawing its random actions in the same order: the target
+    ``r + γ (1 - terminated) (min Q'(s', a') - α log π(a'|s'))``, the critics' summed distance
+    losses and ``td_error``, the actor's ``α log π(a|s) - min Q(s, a)`` through critics held
+    fixed, and the entropy coefficient's loss."""
+
+    def __init__(self, actor_network: nn.Module, qvalue_network: nn.Module, **kwargs) -> None:
+        super().__init__(actor_network, qvalue_network, **kwargs)
+        if self._version != 2:
+            raise ValueError("DirectSACLoss computes SAC version 2 (no value network)")
+        head = next(m for m in self.actor_network.modules() if hasattr(m, "distribution_class"))
+        kwargs = head.distribution_kwargs
+        if head.distribution_class is not TanhNormal or set(kwargs) - {"low", "high"}:
+            raise ValueError(
+                "DirectSACLoss needs a TanhNormal actor (low and high its only kwargs)"
+            )
+        self.bounds = kwargs.get("low", -1.0), kwargs.get("high", 1.0)
+        self.obs_key = inner_network(self.actor_network).in_keys[0]
+        self._bound = Bound()
+
+    def _networks(self) -> tuple:
+        """The actor; the critics on their parameters, on detached ones, on the targets."""
+        q, n = self.qvalue_network, self.num_qvalue_nets
+        critics = tuple(
+            tuple(bind(q, params[i]) for i in range(n))
+            for params in (
+                self.qvalue_network_params,
+                self.qvalue_network_params.detach(),
+                self.target_qvalue_network_params,
+            )
+        )
+        return bind(self.actor_network, self.actor_network_params), *critics
+
+    def _act(self, actor: nn.Module, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """A reparametrised action of the policy at ``obs`` and its log-probability."""
+        return tanh_normal_rsample(*actor(obs), *self.bounds)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDict:
+        actor, critics, fixed, targets = self._bound(self)
+        obs, action = tensordict.get(self.obs_key), tensordict.get(self.tensor_keys.action)
+        alpha = self._alpha
+        with torch.no_grad():
+            next_obs = tensordict.get(("next", self.obs_key))
+            next_action, next_log_prob = self._act(actor, next_obs)
+            next_q = torch.stack([q(next_obs, next_action) for q in targets])
+            next_value = (next_q - alpha * next_log_prob.unsqueeze(-1)).min(0)[0]
+            target = td0_target(self, tensordict, next_value).squeeze(-1)
+        predicted = torch.stack([q(obs, action) for q in critics]).squeeze(-1)
+        loss_q = distance_loss(predicted, target.expand_as(predicted), self.loss_function)
+        weights = self._maybe_get_priority_weight(tensordict)
+        loss_q = self._reduce_loss(loss_q.sum(0), tensordict=tensordict, weights=weights)
+        new_action, log_prob = self._act(actor, obs)
+        new_q = torch.stack([q(obs, new_action) for q in fixed]).min(0)[0].squeeze(-1)
+        loss_actor = self._reduce_loss(
+            alpha * log_prob - new_q, tensordict=tensordict, weights=weights
+        )
+        log_prob = log_prob.detach()
+        loss_alpha = self._reduce_loss(
+            self._alpha_loss(log_prob), tensordict=tensordict, weights=weights
+        )
+        td_error = (predicted - target).abs().detach().max(0)[0]
+        tensordict.set(self.tensor_keys.priority, td_error)
+        return TensorDict(
+            loss_actor=loss_actor,
+            loss_qvalue=loss_q,
+            loss_alpha=loss_alpha,
+            alpha=alpha,
+            entropy=-log_prob.mean(),
+        )
+
+
+def tanh_normal_rsample(
+    loc: torch.Tensor, scale: torch.Tensor, low: torch.Tensor | float, high: torch.Tensor | float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """What TorchRL's ``TanhNormal(loc, scale, low=low, high=high).rsample_and_log_prob()``
+    returns (the same random draw, the same maths), without building the distribution and its
+    transforms: an action ``(high + low)/2 + (high - low)/2 · tanh(u)``, ``u ~ N(loc, scale)``
+    reparametrised, and its log-probability summed over the action's dimensions."""
+    low, high = torch.as_tensor(low, device=loc.device), torch.as_tensor(high, device=loc.device)
+    preimage = loc + torch.empty_like(loc).normal_() * scale  # Normal.rsample's draw
+    half = (high - low) / 2
+    action = (high + low) / 2 + half * safetanh_noeps(preimage)
+    log_normal = -((preimage - loc) ** 2) / (2 * scale**2) - scale.log() - LOG_SQRT_2PI
+    log_det = 2.0 * (math.log(2.0) - preimage - F.softplus(-2.0 * preimage)) + half.abs().log()
+    return action, (log_normal - log_det).sum(-1)
