@@ -19,9 +19,10 @@ import torch
 import torch.nn.functional as F
 from tensordict import TensorDict, TensorDictBase
 from torch import nn
+from torchrl._utils import _standardize
 from torchrl.modules import TanhNormal
 from torchrl.modules.distributions.utils import safetanh_noeps
-from torchrl.objectives import DQNLoss, SACLoss
+from torchrl.objectives import ClipPPOLoss, DQNLoss, SACLoss
 from torchrl.objectives.utils import distance_loss
 
 from rlpipe.models import TensorModule
@@ -209,3 +210,58 @@ def tanh_normal_rsample(
     log_normal = -((preimage - loc) ** 2) / (2 * scale**2) - scale.log() - LOG_SQRT_2PI
     log_det = 2.0 * (math.log(2.0) - preimage - F.softplus(-2.0 * preimage)) + half.abs().log()
     return action, (log_normal - log_det).sum(-1)
+
+
+class DirectPPOLoss(ClipPPOLoss):
+    """``ClipPPOLoss`` (``functional=False``: the modules' own parameters; advantages computed
+    beforehand; no delayed actor, value clipping or importance-ratio cap; an actor over one
+    :class:`~rlpipe.models.TensorModule` and one distribution) whose :meth:`forward` computes
+    what ``ClipPPOLoss.forward`` computes: the clipped surrogate on standardised advantages,
+    the weighted entropy bonus and the weighted critic distance loss. It always reports the
+    diagnostics PPO logs: clip fraction, approximate KL, entropy and explained variance."""
+
+    def __init__(self, actor_network: nn.Module, critic_network: nn.Module, **kwargs) -> None:
+        super().__init__(actor_network, critic_network, functional=False, **kwargs)
+        if self.delay_actor or self.clip_value or self.max_importance_ratio is not None:
+            raise ValueError("DirectPPOLoss computes the plain clipped objective")
+        if self.advantage_norm is not None:
+            raise ValueError("DirectPPOLoss standardises advantages per minibatch only")
+        head = next(m for m in actor_network.modules() if hasattr(m, "distribution_class"))
+        self.distribution = head.distribution_class, head.dist_keys, head.distribution_kwargs
+        # not registered as a submodule: the state dict stays ClipPPOLoss's
+        object.__setattr__(self, "actor_net", inner_network(actor_network))
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDict:
+        keys, (distribution, dist_keys, kwargs) = self.tensor_keys, self.distribution
+        advantage = tensordict.get(keys.advantage)
+        if self.normalize_advantage and advantage.numel() > 1:
+            advantage = _standardize(advantage, self.normalize_advantage_exclude_dims)
+        obs = tensordict.get(self.actor_net.in_keys[0])
+        params = self.actor_net.module(obs)
+        params = params if isinstance(params, tuple) else (params,)
+        dist = distribution(**dict(zip(dist_keys, params, strict=True)), **kwargs)
+        old_log_prob = tensordict.get(keys.sample_log_prob)
+        log_prob = dist.log_prob(tensordict.get(keys.action))
+        log_weight = (log_prob - old_log_prob).unsqueeze(-1)
+        clipped = log_weight.clamp(*self._clip_bounds)
+        gain = torch.minimum(log_weight.exp() * advantage, clipped.exp() * advantage)
+        entropy = dist.entropy().unsqueeze(-1)
+        value = self.critic_network.module(obs)
+        target = tensordict.get(keys.value_target)
+        loss_value = distance_loss(target, value, loss_function=self.loss_critic_type)
+        out = {
+            "loss_objective": self._reduce_loss(-gain, tensordict),
+            "loss_critic": self._reduce_loss(self.critic_coeff * loss_value, tensordict),
+        }
+        if self.entropy_bonus:
+            out["loss_entropy"] = self._reduce_loss(-self.entropy_coeff * entropy, tensordict)
+        with torch.no_grad():
+            residual = torch.var(target - value, correction=0, dim=0)
+            total = torch.var(target, correction=0, dim=0) + torch.finfo(target.dtype).eps
+            diagnostics = {
+                "clip_fraction": (clipped != log_weight).to(log_weight.dtype).mean(),
+                "kl_approx": (old_log_prob - log_prob).mean(),
+                "entropy": entropy.mean(),
+                "explained_variance": 1.0 - residual / total,
+            }
+        return TensorDict({**out, **diagnostics})

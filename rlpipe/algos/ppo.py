@@ -1,5 +1,5 @@
 """PPO assembled from TorchRL parts: a ProbabilisticActor and a ValueOperator, the Collector on the
-batched env, GAE advantages and ClipPPOLoss over minibatch epochs."""
+batched env, GAE advantages and ClipPPOLoss (its forward on plain tensors) over minibatch epochs."""
 
 from __future__ import annotations
 
@@ -9,11 +9,11 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.modules import ValueOperator
-from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
 from rlpipe.algos.base import LOSS, EnvAlgorithm, Metrics, episode_metrics
 from rlpipe.algos.configs import PPOConfig
+from rlpipe.algos.direct import DirectPPOLoss
 from rlpipe.envs import observation_size
 from rlpipe.models import make_policy, mlp
 from rlpipe.normalizer import Normalizer
@@ -26,6 +26,18 @@ def orthogonal_init(net: torch.nn.Module, last_gain: float) -> None:
         torch.nn.init.orthogonal_(layer.weight, last_gain if i == len(layers) - 1 else math.sqrt(2))
         if layer.bias is not None:
             torch.nn.init.zeros_(layer.bias)
+
+
+# what each iteration logs besides the loss (means over its gradient steps): the loss module's
+# key -> the metric (SB3's names)
+LOGGED = {
+    "loss_objective": "train/policy_gradient_loss",
+    "loss_critic": "train/value_loss",
+    "entropy": "train/entropy",
+    "kl_approx": "train/approx_kl",
+    "clip_fraction": "train/clip_fraction",
+    "explained_variance": "train/explained_variance",
+}
 
 
 class PPO(EnvAlgorithm):
@@ -56,17 +68,15 @@ class PPO(EnvAlgorithm):
             self._normalized(observation_size(env), 1, "the state's value", critic=True),
             in_keys=["observation"],
         )
-        self.loss = ClipPPOLoss(
+        self.loss = DirectPPOLoss(  # ClipPPOLoss on the modules' own parameters
             actor,
             critic,
             clip_epsilon=cfg.clip_epsilon,
             entropy_bonus=cfg.entropy_coef > 0,  # no entropy term to compute otherwise
             entropy_coeff=cfg.entropy_coef,
-            log_explained_variance=False,
             critic_coeff=cfg.critic_coef,
             loss_critic_type="l2",
             normalize_advantage=True,
-            functional=False,  # the modules' own parameters: no swap into them on every call
         )
         self.loss.set_keys(action=sample_key)
         self.loss.to(device)
@@ -105,19 +115,21 @@ class PPO(EnvAlgorithm):
         with torch.no_grad():
             self.advantage(batch)
         data = batch.reshape(-1)
-        losses = []
+        steps = []
         for _ in range(self.cfg.epochs):
             for minibatch in self._minibatches(data):
-                loss = self._loss(minibatch)
+                out = self.loss(minibatch)
+                loss = out["loss_objective"] + out["loss_critic"] + out.get("loss_entropy", 0.0)
                 self.optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 torch.nn.utils.clip_grad_norm_(self._params, self.cfg.max_grad_norm)
                 self.optimizer.step()
-                losses.append(loss.detach())
+                steps.append(torch.stack([loss.detach(), *(out[k].reshape(()) for k in LOGGED)]))
         if self.cfg.normalize_observations:  # after the epochs: they saw what the rollout saw
             self.normalizer.observe(batch["observation"])
         self.sync_collector()
-        metrics: Metrics = {LOSS: float(torch.stack(losses).mean())}
+        means = torch.stack(steps).mean(0).tolist()  # of the iteration's gradient steps
+        metrics: Metrics = dict(zip((LOSS, *LOGGED.values()), means, strict=True))
         metrics.update(episode_metrics(batch))
         return metrics
 
@@ -127,10 +139,6 @@ class PPO(EnvAlgorithm):
             return [data]
         index = torch.randperm(len(data), device=self.device)
         return [data[i] for i in index.split(self.cfg.minibatch_size)]
-
-    def _loss(self, minibatch: TensorDictBase) -> torch.Tensor:
-        out = self.loss(minibatch)
-        return out["loss_objective"] + out["loss_critic"] + out.get("loss_entropy", 0.0)
 
     def _restored(self) -> None:
         self.collector.update_policy_weights_()
