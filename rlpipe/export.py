@@ -53,16 +53,8 @@ def run(cfg: ExportConfig) -> ExportResult:
     """Export as ``cfg`` says (:func:`rlpipe.export_formats.export_policy`)."""
     run_dir = str(latest_run()) if cfg.run_dir == "latest" else cfg.run_dir
     set_threads("auto", torch.device("cpu"))  # one thread: small networks, busy cores
-    return export_policy(
-        run_dir,
-        format=cfg.format,
-        checkpoint=cfg.checkpoint,
-        out=cfg.out,
-        overwrite=cfg.overwrite,
-        observations=cfg.observations,
-        seed=cfg.seed,
-        allow_env_import=cfg.allow_env_import,
-    )
+    keys = {f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg) if f.name != "run_dir"}
+    return export_policy(run_dir, **keys)
 
 
 def main(argv: Sequence[str] | None = None) -> None:

@@ -86,12 +86,14 @@ def export_policy(
     observations: int = 1000,
     seed: int = 0,
     allow_env_import: bool = False,
+    network: nn.Module | None = None,
 ) -> ExportResult:
     """Write ``run_dir``'s greedy policy (its newest checkpoint; ``"best"``, or a file name in
     its ``checkpoints/``) as one ``format`` file at ``out`` (default:
     ``<run_dir>/export/policy-<checkpoint><suffix>``), after checking that the file, loaded
     back, takes the run's actions on ``observations`` observations sampled (``seed``) from the
-    env's observation space. An existing ``out`` is replaced only with ``overwrite``."""
+    env's observation space. An existing ``out`` is replaced only with ``overwrite``.
+    ``allow_env_import`` and ``network``: as :func:`rlpipe.load_run` takes them."""
     check(
         format in FORMATS,
         f"format must be one of {', '.join(FORMATS)}; got {format!r}",
@@ -103,7 +105,13 @@ def export_policy(
         out is None or overwrite or not os.path.lexists(out),
         f"{out} exists; pass overwrite=true to replace it, or another out=<file>",
     )
-    loaded = load_run(run_dir, checkpoint, allow_env_import=allow_env_import)
+    loaded = load_run(  # gymnasium's env: the spaces a plain loop sees (no EnvPool to start)
+        run_dir,
+        checkpoint,
+        allow_env_import=allow_env_import,
+        network=network,
+        backend="gymnasium",
+    )
     try:
         name = f"policy-{loaded.checkpoint.stem}{FORMATS[format][0]}"
         path = Path(out) if out is not None else Path(run_dir) / RunDir.EXPORT / name

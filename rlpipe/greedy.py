@@ -3,8 +3,8 @@ takes out (what ``python -m rlpipe.export`` writes).
 
 :func:`greedy_policy` builds, from a trained algorithm, an ``nn.Module`` mapping a float32 batch
 ``[B, obs]`` of raw observations to the greedy actions ``[B]`` (discrete, int64) or
-``[B, action dims]`` (continuous, float32), with no TensorDict, distribution or rlpipe inside:
-the observation normaliser (ARS, PPO; MBRL's world model), the network, and the action head that
+``[B, action dims]`` (continuous, float32), with no TensorDict or distribution inside: the
+observation normaliser (ARS, PPO; MBRL's world model), the network, and the action head that
 evaluation's deterministic mode applies (argmax of Q-values, the most probable action, the
 Gaussian's mean clamped into the bounds, SAC's tanh of the mean scaled into them). MBRL's greedy
 policy plans with its world model (:class:`FixedNoisePlanner`).
@@ -14,22 +14,21 @@ from __future__ import annotations
 
 import copy
 from collections.abc import Callable
+from typing import Any
 
 import torch
-import torch.nn.functional as F
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModuleBase
 from torch import nn
+from torch.overrides import TorchFunctionMode
 from torchrl.envs import ExplorationType, set_exploration_type
 
 from rlpipe.algos.base import Algorithm
-from rlpipe.algos.mbrl.planning import Planner
 from rlpipe.errors import RlpipeError
 from rlpipe.models import ArgmaxAction
 
-# the seed rlpipe's greedy MPC policy re-seeds its planner's noise with on every call
-# (rlpipe.algos.mbrl.algorithm._EVAL_SEED)
-PLANNER_SEED = 0
+# the random draws of MBRL's planner (torch functions), fixed by FixedNoisePlanner
+DRAWS = (torch.rand, torch.randn)
 
 
 class GreedyPolicy(nn.Module):
@@ -66,72 +65,67 @@ class TanhAction(nn.Module):
         return self.center + self.half_range * loc.tanh().clamp(-limit, limit)
 
 
-class FixedNoisePlanner(nn.Module):
-    """MBRL's greedy model-predictive control as a module: the planner's search on the world
-    model, with the noise drawn once, as rlpipe's greedy policy draws it for one observation.
+class _RecordDraws(TorchFunctionMode):
+    """Inside it, the planner's random draws (:data:`DRAWS`) are also kept in ``draws``."""
 
-    rlpipe's greedy MPC re-seeds its planner with :data:`PLANNER_SEED` on every call, so for one
-    observation its action is a function of the observation; this module holds that noise
-    (CEM: ``iterations`` draws of ``[candidates, horizon, action]``; random shooting: one) and
-    plans every row of a batch with it, so row ``i`` of a batch gets the action rlpipe's policy
-    takes for observation ``i`` alone (on a batch, rlpipe's policy draws other noise per row).
+    def __init__(self) -> None:
+        super().__init__()
+        self.draws: list[torch.Tensor] = []
+
+    def __torch_function__(
+        self, func: Callable, types: tuple, args: tuple = (), kwargs: dict | None = None
+    ) -> Any:
+        out = func(*args, **(kwargs or {}))
+        if func in DRAWS:
+            self.draws.append(out)
+        return out
+
+
+class _ReplayDraws(TorchFunctionMode):
+    """Inside it, the planner's random draws return ``draws`` in turn, each (one observation's
+    draw) expanded to the batch asked for."""
+
+    def __init__(self, draws: torch.Tensor) -> None:
+        super().__init__()
+        self.draws = iter(draws)
+
+    def __torch_function__(
+        self, func: Callable, types: tuple, args: tuple = (), kwargs: dict | None = None
+    ) -> Any:
+        if func not in DRAWS:
+            return func(*args, **(kwargs or {}))
+        shape = args if isinstance(args[0], int) else args[0]  # rand(*size) or rand(size)
+        return next(self.draws).expand(shape)
+
+
+class FixedNoisePlanner(nn.Module):
+    """MBRL's greedy model-predictive control as a module: its MPC policy, whose planner's
+    random draws are the ones it makes for one observation, fixed.
+
+    rlpipe's greedy MPC re-seeds its planner's noise on every call, so for one observation its
+    action is a function of the observation. This module records the draws of one such call
+    (they depend on the batch's size, not on the observation) and replays them, each expanded
+    to the batch, whenever it plans: row ``i`` of a batch gets the action rlpipe's policy takes
+    for observation ``i`` alone (on a batch, rlpipe's policy draws other noise for each row).
+    It takes over ``mpc`` (:func:`greedy_policy` passes a copy): the world model's "can
+    terminate" flag becomes a constant, as torch.export (ONNX) cannot branch on a buffer.
     """
 
-    def __init__(self, planner: Planner) -> None:
+    def __init__(self, mpc: nn.Module) -> None:
         super().__init__()
-        self.model, self.planner = planner.model, planner  # owned: greedy_policy passes a copy
-        # whether the model predicts terminations, as a constant: torch.export (ONNX) cannot
-        # branch on a buffer's value (it changes only while training)
-        can_terminate = bool(self.model.can_terminate)
-        del self.model.can_terminate
-        self.model.can_terminate = can_terminate
-        coder = planner.coder
-        shape = (planner.candidates, planner.horizon, 1 if coder.discrete else coder.size)
-        gaussian = not coder.discrete and planner.method == "cem"
-        generator = torch.Generator().manual_seed(PLANNER_SEED)
-        # the planner's draws for one observation, one per iteration (random shooting: one)
-        noise = torch.stack(
-            [
-                (torch.randn if gaussian else torch.rand)((1, *shape), generator=generator)[0]
-                for _ in range(planner.iterations)
-            ]
-        )
-        if not coder.discrete and planner.method == "random":
-            noise = noise * 2 - 1  # uniform action codes in [-1, 1]
-        self.register_buffer("noise", noise)
+        self.mpc = mpc
+        model = mpc.model
+        can_terminate = bool(model.can_terminate)
+        del model.can_terminate
+        model.can_terminate = can_terminate
+        recorder = _RecordDraws()
+        with torch.no_grad(), recorder:
+            mpc(torch.zeros(1, model.obs_norm.loc.numel()))
+        self.register_buffer("noise", torch.cat(recorder.draws))
 
     def forward(self, observation: torch.Tensor) -> torch.Tensor:
-        if self.planner.coder.discrete:
-            return self._discrete(observation)
-        return self._box(observation)
-
-    def _box(self, observation: torch.Tensor) -> torch.Tensor:
-        planner = self.planner
-        if planner.method == "random":
-            codes = self.noise[0].expand(observation.shape[0], -1, -1, -1)
-            best = planner.returns(observation, codes).argmax(1)
-            first = codes[torch.arange(observation.shape[0]), best, 0]
-        else:
-            mean = observation.new_zeros(observation.shape[0], 1, *self.noise.shape[2:])
-            std = torch.full_like(mean, planner.init_std)
-            for noise in self.noise:
-                elite = planner._elites(observation, (mean + std * noise).clamp(-1, 1))
-                mean, std = elite.mean(1, keepdim=True), elite.std(1, keepdim=True)
-            first = mean[:, 0, 0]
-        return planner.coder.decode(first)
-
-    def _discrete(self, observation: torch.Tensor) -> torch.Tensor:
-        planner, n = self.planner, self.planner.coder.num_actions
-        rows = observation.shape[0]
-        probs = observation.new_full((rows, 1, planner.horizon, n), 1 / n)
-        for uniform in self.noise:  # inverse-CDF samples of the per-step categoricals
-            index = (probs.cumsum(-1) < uniform).sum(-1).clamp(max=n - 1)
-            codes = F.one_hot(index, n).float()
-            if planner.method == "random":
-                best = planner.returns(observation, codes).argmax(1)
-                return index[torch.arange(rows), best, 0]
-            probs = planner._elites(observation, codes).mean(1, keepdim=True)
-        return probs[:, 0, 0].argmax(-1)
+        with set_exploration_type(ExplorationType.DETERMINISTIC), _ReplayDraws(self.noise):
+            return self.mpc(observation)
 
 
 def _writer(policy: nn.Module, key: str) -> nn.Module | None:
@@ -181,7 +175,7 @@ def _normalized_search(policy: TensorDictModuleBase) -> nn.Module:
 
 def _planner(policy: TensorDictModuleBase) -> nn.Module:
     """MBRL: its model-predictive control with the greedy noise fixed."""
-    return FixedNoisePlanner(_inner(policy, "action").planner)
+    return FixedNoisePlanner(_inner(policy, "action"))
 
 
 # algorithm name -> the greedy module of its (copied) policy
@@ -196,16 +190,17 @@ BUILDERS: dict[str, Callable[[TensorDictModuleBase], nn.Module]] = {
 
 
 def greedy_policy(algo: Algorithm) -> nn.Module:
-    """A plain ``nn.Module`` (eval mode) mapping raw float32 observations ``[B, obs]`` to the
-    greedy actions ``algo.policy`` takes in evaluation, built from a copy of the policy (later
-    training does not change it). MBRL: see :class:`FixedNoisePlanner`."""
+    """A plain ``nn.Module`` mapping raw float32 observations ``[B, obs]`` to the greedy actions
+    ``algo.policy`` takes in evaluation: built from a copy of the policy (later training does
+    not change it), in eval mode, its parameters without gradients. MBRL: see
+    :class:`FixedNoisePlanner`."""
     name = algo.cfg.name
     if name not in BUILDERS:
         raise RlpipeError(
             f"cannot export algo={name}: rlpipe knows the greedy policy of "
             f"{', '.join(BUILDERS)}; build a torch module from its policy by hand"
         )
-    return BUILDERS[name](copy.deepcopy(algo.policy)).eval()
+    return BUILDERS[name](copy.deepcopy(algo.policy)).eval().requires_grad_(False)
 
 
 @torch.no_grad()
