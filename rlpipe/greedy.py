@@ -32,7 +32,8 @@ DRAWS = (torch.rand, torch.randn)
 
 
 class GreedyPolicy(nn.Module):
-    """``observation -> net -> (its output number output) -> head``: the greedy action."""
+    """The network, then the action head: on the network's output, or on its output number
+    ``output`` when it returns several (a Gaussian's location and scale: 0)."""
 
     def __init__(self, net: nn.Module, head: nn.Module, output: int | None = None) -> None:
         super().__init__()
@@ -94,7 +95,8 @@ class _ReplayDraws(TorchFunctionMode):
     ) -> Any:
         if func not in DRAWS:
             return func(*args, **(kwargs or {}))
-        shape = args if isinstance(args[0], int) else args[0]  # rand(*size) or rand(size)
+        sized = isinstance(args[0], (tuple, list, torch.Size))
+        shape = args[0] if sized else args  # rand(size) or rand(*size)
         return next(self.draws).expand(shape)
 
 
