@@ -371,3 +371,15 @@ def test_help_lists_the_keys(capsys) -> None:
     text = capsys.readouterr().out
     assert text.startswith("``python -m rlpipe.export run_dir=")
     assert "keys (conf/export.yaml): run_dir, checkpoint, format, out, overwrite" in text
+
+
+def test_an_export_dir_that_is_a_link_is_refused(runs, tmp_path: Path, capsys) -> None:
+    """Nothing is written through a link in the run dir: its export/ pointing elsewhere."""
+    run = Path(
+        shutil.copytree(runs["dqn"], tmp_path / "run", ignore=shutil.ignore_patterns("export"))
+    )
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (run / "export").symlink_to(elsewhere)
+    assert_one_error_line(main, [f"run_dir={run}"], "export is a symbolic link", capsys)
+    assert list(elsewhere.iterdir()) == []
