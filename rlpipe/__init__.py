@@ -46,6 +46,11 @@ Run directories:
     plot_groups      learning curves of groups: mean or IQM over seeds, 95% bootstrap band
     plot_run         a run's curve.png
 
+Exporting a trained policy (python -m rlpipe.export):
+    export_policy    a run's greedy policy as one TorchScript, ONNX or state-dict file, checked
+    ExportResult     what export_policy wrote: the file, its format and spec; summary_line()
+    greedy_policy    a plain torch module: raw observations -> the greedy actions of an algorithm
+
 ARS pieces, usable on any policy:
     ARSSearch        augmented random search on a TensorDictModule's parameters; step()
     Normalizer       running observation mean and variance, standardising observations
@@ -107,6 +112,9 @@ _MODULES = {
     "load_run": "rlpipe.pipeline",
     "train": "rlpipe.pipeline",
     "seed_everything": "rlpipe.runtime",
+    "ExportResult": "rlpipe.export_formats",
+    "export_policy": "rlpipe.export_formats",
+    "greedy_policy": "rlpipe.greedy",
 }
 
 __all__ = sorted(_MODULES)

@@ -36,6 +36,7 @@ KEYS = {
 }
 ENTRY_POINTS = {
     "python -m rlpipe.evaluate run_dir=<dir>": "evaluate a trained run (or policy=random)",
+    "python -m rlpipe.export run_dir=<dir>": "the trained policy as a TorchScript or ONNX file",
     "python -m rlpipe.plot <run or sweep dirs>": "learning curves, seeds averaged",
     "python -m rlpipe.play": "play CartPole or MountainCar with the keyboard",
 }

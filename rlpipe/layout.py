@@ -25,9 +25,10 @@ class RunLayout:
     HYDRA = ".hydra"
     VIDEOS = "videos"  # videos/eval_<frames>.mp4 (video=true)
     EVALUATION = "evaluation"  # evaluation/<policy>.json (python -m rlpipe.evaluate)
+    EXPORT = "export"  # export/policy-<checkpoint>.pt, .onnx (python -m rlpipe.export)
     CURVE = "curve.png"
     LOG = "rlpipe.log"  # Hydra's job log (hydra.job.name: rlpipe)
-    DIRS = (CHECKPOINTS, METRICS, f"{METRICS}/scalars", VIDEOS, EVALUATION, HYDRA)
+    DIRS = (CHECKPOINTS, METRICS, f"{METRICS}/scalars", VIDEOS, EVALUATION, EXPORT, HYDRA)
     TRACKERS = ("tensorboard", "wandb", "mlartifacts", "mlflow.db")  # the loggers' own files
 
     def __init__(self, path: str | Path) -> None:
@@ -125,7 +126,7 @@ class RunLayout:
         named = [self.path / name for name in (self.SUMMARY, self.CURVE, self.LOG, "mlflow.db")]
         listed = [
             entry
-            for name in (self.CHECKPOINTS, self.VIDEOS, self.EVALUATION, self.HYDRA)
+            for name in (self.CHECKPOINTS, self.VIDEOS, self.EVALUATION, self.EXPORT, self.HYDRA)
             if (self.path / name).is_dir()
             for entry in sorted((self.path / name).iterdir())
             if not entry.is_dir() or entry.is_symlink()

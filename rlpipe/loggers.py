@@ -40,6 +40,7 @@ EXTRAS: dict[str, tuple[str, ...]] = {
     "wandb": ("wandb", "moviepy"),
     "mlflow": ("mlflow", "sqlalchemy", "alembic"),
     "video": ("imageio", "imageio_ffmpeg"),
+    "onnx": ("onnx", "onnxscript", "onnxruntime"),  # python -m rlpipe.export format=onnx
 }
 
 

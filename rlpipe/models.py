@@ -155,7 +155,7 @@ def instantiate(spec: Mapping[str, Any], what: str, **sizes: int) -> Any:
         return hydra_instantiate(dict(spec), **kwargs, _convert_="all")
     except InstantiationException as err:
         raise RlpipeError(
-            f"{what}: cannot build {target} ({_reason(err.__cause__ or err)})"
+            f"{what}: cannot build {target} ({error_reason(err.__cause__ or err)})"
         ) from err
 
 
@@ -221,7 +221,7 @@ def user_network(
     except Exception as err:  # the user's module: any failure is theirs to see, in one line
         raise RlpipeError(
             f"the network {name} fails on a batch of 2 inputs of size {in_features} "
-            f"({_reason(err)})"
+            f"({error_reason(err)})"
         ) from err
     check(
         isinstance(out, torch.Tensor) and out.shape == (2, out_features),
@@ -232,7 +232,7 @@ def user_network(
     return network
 
 
-def _reason(err: BaseException) -> str:
+def error_reason(err: BaseException) -> str:
     """An exception as one line: its type and the first line of its message."""
     lines = str(err).strip().splitlines()
     return f"{type(err).__name__}: {lines[0]}" if lines else type(err).__name__

@@ -164,7 +164,13 @@ def test_help_names_groups_options_keys_entry_points_and_examples(tmp_path):
     top = {f.name for f in fields(Config)} - {"env", "algo", "logger"}
     assert top == set(KEYS)
     assert "seed=0 " in text and "threads=auto " in text and "total_frames=null " in text
-    for command in ("rlpipe.evaluate", "rlpipe.plot", "rlpipe.play", "rlpipe algo=ars env=bipedal"):
+    for command in (
+        "rlpipe.evaluate",
+        "rlpipe.export",
+        "rlpipe.plot",
+        "rlpipe.play",
+        "rlpipe algo=ars env=bipedal",
+    ):
         assert f"python -m {command}" in text
     assert not (tmp_path / "outputs").exists()  # help trains nothing
 
