@@ -1,4 +1,4 @@
-"""benchmarks/presets.py's SB3 saves (hours-long presets resume across calls): a kill at every
+"""benchmarks/presets_sb3.py's SB3 saves (hours-long presets resume across calls): a kill at every
 write point of a save leaves a complete save, the newest one that was finished, to resume from."""
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 def presets():
     sys.path.insert(0, str(BENCHMARKS))
     try:
-        yield importlib.import_module("presets")
+        yield importlib.import_module("presets_sb3")
     finally:
         sys.path.remove(str(BENCHMARKS))
 
