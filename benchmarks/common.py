@@ -143,15 +143,16 @@ def read_scalar(run_dir: Path, name: str) -> list[tuple[int, float]]:
 
 def replace_section(path: str | Path, text: str) -> None:
     """Put ``text`` (a Markdown section starting with its ``## `` heading) into ``path``: in place
-    of the section with the same heading, or at the end; the rest of the file is kept."""
+    of the section(s) with the same heading, or at the end; the rest of the file is kept, one
+    blank line between sections."""
     path = Path(path)
     heading = text.splitlines()[0]
     old = path.read_text() if path.is_file() else ""
-    sections = re.split(r"(?m)^(?=## )", old)
-    kept = [s for s in sections if s.splitlines()[:1] != [heading]]
-    at = next((i for i, s in enumerate(sections) if s.splitlines()[:1] == [heading]), len(kept))
-    kept.insert(at, text.rstrip("\n") + "\n\n")
-    path.write_text("".join(kept).rstrip("\n") + "\n")
+    sections = [s.rstrip("\n") for s in re.split(r"(?m)^(?=## )", old) if s.strip()]
+    same = [i for i, s in enumerate(sections) if s.splitlines()[0] == heading]
+    kept = [s for i, s in enumerate(sections) if i not in same]
+    kept.insert(same[0] if same else len(kept), text.rstrip("\n"))
+    path.write_text("\n\n".join(kept) + "\n")
 
 
 def publish_section(text: str, append: str | Path | None) -> None:

@@ -139,17 +139,21 @@ def plan(args, presets, seeds, configs, out: Path) -> list[list[tuple]]:
 
 def section(args, presets, configs, runs: list[Run], loads, wall: float) -> str:
     """The benchmark's section of BENCHMARKS.md."""
-    used = sorted({r.seed for r in runs})
+    used = seed_text(sorted({r.seed for r in runs}))
+    title, seeds = (
+        "Tuned presets",
+        (
+            f"seeds: held-out, {used}; no tuning run, sweep or trial used them (each preset's "
+            "tuning seeds: its note)"
+        ),
+    )
     if args.tune:
-        kind, seeds = "TUNING seeds", f"TUNING seeds {seed_text(used)} (--tune): not a result"
-    else:
-        kind = "held-out seeds"
-        seeds = (
-            f"held-out seeds {seed_text(used)}, which no tuning run, sweep or trial used "
-            "(each preset's tuning seeds: its note)"
+        title, seeds = (
+            "Tuned presets — TUNING seeds",
+            f"seeds: TUNING, {used} (--tune): not a result",
         )
     if args.frames is not None or args.final_episodes is not None:
-        kind += " — smoke test, budgets overridden"
+        title += " — smoke test, budgets overridden"
     reused = sum(r.reused for r in runs)
     facts = [
         seeds,
@@ -165,7 +169,7 @@ def section(args, presets, configs, runs: list[Run], loads, wall: float) -> str:
         if args.append:
             shown = Path(os.path.relpath(args.figure.resolve(), args.append.resolve().parent))
         facts.append(f"performance profile: ![performance profile]({shown.as_posix()})")
-    head = section_head(f"Tuned presets on {kind}", PACKAGES, load_span(*loads), *facts)
+    head = section_head(title, PACKAGES, load_span(*loads), *facts)
     return "\n".join(head + tables(presets, configs, runs))
 
 
