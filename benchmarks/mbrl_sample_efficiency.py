@@ -22,17 +22,9 @@ from __future__ import annotations
 import os
 import time
 
+import common
 import torch
-from common import (
-    first_hit,
-    hit_cells,
-    load_span,
-    parser,
-    publish_section,
-    section_head,
-    table,
-    train_with_evals,
-)
+from common import first_hit, hit_cells, parser, table, train_with_evals
 
 PENDULUM_TARGET = -250.0
 CARTPOLE_TARGET = 50.0
@@ -92,10 +84,10 @@ def main() -> None:
                 ]
             )
             print(rows[-1], flush=True)
-    head = section_head(
+    head = common.section_head(
         "MBRL sample efficiency: frames and seconds to a target, vs ARS and REINFORCE",
         ["torch", "torchrl", "tensordict", "gymnasium"],
-        load_span(load_before, os.getloadavg()),
+        common.load_span(load_before, os.getloadavg()),
     )
     report = [
         *head,
@@ -120,7 +112,7 @@ def main() -> None:
             rows,
         ),
     ]
-    publish_section("\n".join(report), args.append)
+    common.publish_section("\n".join(report), args.append)
 
 
 if __name__ == "__main__":

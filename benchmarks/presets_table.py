@@ -1,4 +1,4 @@
-"""The presets benchmarks/presets.py measures: target, seeds (tuning and held-out), SB3's settings.
+"""The presets benchmarks/presets.py measures (presets.yaml) and the held-out seed protocol.
 
 The protocol: a preset is tuned on any seeds below 100 (``tuned_on`` says which were used) and
 published on its held-out seeds (100-109; ``sac_bipedal``, hours per seed: 100-102), which no
@@ -6,20 +6,22 @@ tuning run, sweep or trial may touch. Solved, per seed: the mean of the last thr
 the final 100-episode greedy eval both ≥ the target. The target is the RL Zoo's figure where
 the Zoo has one for that algorithm and env (its benchmark.md: one run, the deterministic policy),
 else the aim the preset was tuned to (``target_from`` says which). ``floor``: a uniformly random
-policy's mean over 100 episodes (``python -m rlpipe.evaluate policy=random env=<env>
-episodes=100``), for scores normalised as (score - floor) / (target - floor).
+policy's mean over 100 episodes, for scores normalised as (score - floor) / (target - floor).
+Each preset's entry, with SB3's settings, is data in ``presets.yaml``.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
+
+import yaml
 
 from rlpipe.errors import RlpipeError, check
 
 HELD_OUT = tuple(range(100, 110))  # the seeds results are published on
-NET_256 = dict(net_arch=[256, 256])
 # overrides that change how a run executes, not what it learns: allowed on held-out seeds
 NEUTRAL_KEYS = ("env.backend", "threads", "device")
 
@@ -37,7 +39,7 @@ class Preset:
     held_out: tuple[int, ...] = HELD_OUT
     final_episodes: int = 100  # episodes of the final greedy eval
     sb3: dict[str, Any] | None = None  # SB3 keyword arguments (RL Zoo's hyperparams/<algo>.yml)
-    sb3_algo: str = "DQN"  # the SB3 (or sb3-contrib) class they are for
+    sb3_algo: str = ""  # the SB3 (or sb3-contrib) class they are for
     sb3_policy: str = "MlpPolicy"
     sb3_envs: int = 1  # the Zoo's n_envs
     sb3_normalize: bool = False  # the Zoo's VecNormalize(norm_obs=True, norm_reward=False)
@@ -64,205 +66,37 @@ class linear:  # noqa: N801 (named as the Zoo's lin_<start>)
         return f"lin_{self.start:g}"
 
 
-# random-policy floors measured with python -m rlpipe.evaluate policy=random episodes=100
-CARTPOLE, PENDULUM, BIPEDAL, CONTINUOUS_CARTPOLE = 21.0, -1257.9, -100.9, 31.1
-ZOO = "RL Zoo's benchmark.md"
+def schedule(value: Any) -> Any:
+    """A Zoo value as SB3 takes it: ``lin_<x>`` is :class:`linear` from x."""
+    if isinstance(value, str) and value.startswith("lin_"):
+        return linear(float(value[4:]))
+    return value
 
-PRESETS: dict[str, Preset] = {
-    "dqn_cartpole": Preset(
-        "dqn_cartpole",
-        "CartPole-v1",
-        target=500.0,
-        target_from=f"{ZOO}, DQN, 50k steps",
-        floor=CARTPOLE,
-        tuned_on=(0, 1, 2, 3, 4),
-        sb3=dict(
-            learning_rate=2.3e-3,
-            batch_size=64,
-            buffer_size=100_000,
-            learning_starts=1000,
-            gamma=0.99,
-            target_update_interval=10,
-            train_freq=256,
-            gradient_steps=128,
-            exploration_fraction=0.16,
-            exploration_final_eps=0.04,
-            policy_kwargs=NET_256,
-        ),
-    ),
-    "dqn_mountaincar": Preset(
-        "dqn_mountaincar",
-        "MountainCar-v0",
-        target=-100.8,
-        target_from=f"{ZOO}, DQN, 120k steps",
-        floor=-200.0,
-        tuned_on=(0, 1, 2, 3, 4, 5),
-        sb3=dict(
-            learning_rate=4e-3,
-            batch_size=128,
-            buffer_size=10_000,
-            learning_starts=1000,
-            gamma=0.98,
-            target_update_interval=600,
-            train_freq=16,
-            gradient_steps=8,
-            exploration_fraction=0.2,
-            exploration_final_eps=0.07,
-            policy_kwargs=NET_256,
-        ),
-    ),
-    "dqn_lunarlander": Preset(
-        "dqn_lunarlander",
-        "LunarLander-v3",
-        target=154.4,
-        target_from=f"{ZOO}, DQN, 100k steps, measured on LunarLander-v2",
-        floor=-187.7,
-        tuned_on=(0, 1, 2),
-        sb3=dict(
-            learning_rate=6.3e-4,
-            batch_size=128,
-            buffer_size=50_000,
-            learning_starts=0,
-            gamma=0.99,
-            target_update_interval=250,
-            train_freq=4,
-            gradient_steps=-1,
-            exploration_fraction=0.12,
-            exploration_final_eps=0.1,
-            policy_kwargs=NET_256,
-        ),
-    ),
-    "reinforce_cartpole": Preset(
-        "reinforce_cartpole",
-        "rlpipe/CartPoleContinuous-v0",
-        target=50.0,
-        target_from="the 50-step horizon, the aim of conf/tuned/reinforce_cartpole_continuous.yaml",
-        floor=CONTINUOUS_CARTPOLE,
-        tuned_on=tuple(range(9)),
-        no_sb3="SB3 has no REINFORCE",
-    ),
-    "ars_cartpole": Preset(
-        "ars_cartpole",
-        "CartPole-v1",
-        target=500.0,
-        target_from=f"{ZOO}, ARS, 50k steps",
-        floor=CARTPOLE,
-        tuned_on=(0, 1, 2),
-        sb3=dict(n_delta=2),
-        sb3_algo="ARS",
-        sb3_policy="LinearPolicy",
-    ),
-    "ars_pendulum": Preset(
-        "ars_pendulum",
-        "Pendulum-v1",
-        target=-212.5,
-        target_from=f"{ZOO}, ARS, 2M steps",
-        floor=PENDULUM,
-        tuned_on=(0, 1, 2),
-        sb3=dict(
-            learning_rate=0.018,
-            n_delta=4,
-            n_top=1,
-            delta_std=0.1,
-            zero_policy=False,
-            policy_kwargs=dict(net_arch=[16]),
-        ),
-        sb3_algo="ARS",
-        sb3_normalize=True,
-    ),
-    "ars_bipedal": Preset(
-        "ars_bipedal",
-        "BipedalWalker-v3",
-        target=300.0,
-        target_from="BipedalWalker-v3's 'solved' (the Zoo has no ARS figure for it), the aim of "
-        "conf/tuned/ars_bipedal.yaml",
-        floor=BIPEDAL,
-        tuned_on=(0, 1, 2),
-        sb3=dict(
-            learning_rate=0.02,
-            delta_std=0.0075,
-            n_delta=64,
-            n_top=32,
-            alive_bonus_offset=-0.1,
-            policy_kwargs=dict(net_arch=[16]),
-        ),
-        sb3_algo="ARS",
-        sb3_normalize=True,
-        resumable=True,  # SB3's ARS steps one env: hours per seed at 30 M frames
-    ),
-    "mbrl_pendulum": Preset(
-        "mbrl_pendulum",
-        "Pendulum-v1",
-        target=-250.0,
-        target_from="the target of benchmarks/mbrl_sample_efficiency.py",
-        floor=PENDULUM,
-        tuned_on=(0, 1, 2),
-        no_sb3="SB3 has no model-based RL",
-    ),
-    "mbrl_cartpole": Preset(
-        "mbrl_cartpole",
-        "rlpipe/CartPoleContinuous-v0",
-        target=50.0,
-        target_from="the 50-step horizon (benchmarks/mbrl_sample_efficiency.py's target)",
-        floor=CONTINUOUS_CARTPOLE,
-        tuned_on=(0, 1, 2),
-        no_sb3="SB3 has no model-based RL",
-    ),
-    "ppo_cartpole": Preset(
-        "ppo_cartpole",
-        "CartPole-v1",
-        target=500.0,
-        target_from=f"{ZOO}, PPO, 100k steps",
-        floor=CARTPOLE,
-        tuned_on=(0, 1, 2),
-        sb3=dict(
-            n_steps=32,
-            batch_size=256,
-            gae_lambda=0.8,
-            gamma=0.98,
-            n_epochs=20,
-            ent_coef=0.0,
-            learning_rate=linear(1e-3),
-            clip_range=linear(0.2),
-        ),
-        sb3_algo="PPO",
-        sb3_envs=8,
-    ),
-    "sac_pendulum": Preset(
-        "sac_pendulum",
-        "Pendulum-v1",
-        target=-157.0,
-        target_from=f"{ZOO}, SAC, 20k steps",
-        floor=PENDULUM,
-        tuned_on=(0, 1, 2),
-        sb3=dict(learning_rate=1e-3),
-        sb3_algo="SAC",
-    ),
-    "sac_bipedal": Preset(
-        "sac_bipedal",
-        "BipedalWalker-v3",
-        target=297.7,
-        target_from=f"{ZOO}, SAC, 500k steps",
-        floor=BIPEDAL,
-        tuned_on=(0, 1, 2),
-        held_out=(100, 101, 102),  # ~2.5 h of training per seed and side on 2 cores
-        sb3=dict(
-            learning_rate=7.3e-4,
-            buffer_size=300_000,
-            batch_size=256,
-            ent_coef="auto",
-            gamma=0.98,
-            tau=0.02,
-            train_freq=64,
-            gradient_steps=64,
-            learning_starts=10_000,
-            use_sde=True,
-            policy_kwargs=dict(log_std_init=-3, net_arch=[400, 300]),
-        ),
-        sb3_algo="SAC",
-        resumable=True,
-    ),
-}
+
+TABLE = Path(__file__).with_name("presets.yaml")
+
+
+def load(path: Path = TABLE) -> dict[str, Preset]:
+    """The presets of ``presets.yaml`` (its header says what each key means)."""
+    table = yaml.safe_load(path.read_text())
+    presets = {}
+    for name, entry in table.items():
+        sb3 = entry.pop("sb3", None) or {}
+        for key in ("tuned_on", "held_out"):
+            entry[key] = tuple(entry.get(key, HELD_OUT))
+        presets[name] = Preset(
+            name,
+            **entry,
+            sb3={k: schedule(v) for k, v in sb3["kwargs"].items()} if sb3 else None,
+            sb3_algo=sb3.get("algo", ""),
+            sb3_policy=sb3.get("policy", "MlpPolicy"),
+            sb3_envs=sb3.get("n_envs", 1),
+            sb3_normalize=sb3.get("normalize", False),
+        )
+    return presets
+
+
+PRESETS = load()
 
 
 def seeds_for(
