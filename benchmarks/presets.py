@@ -15,12 +15,14 @@ How the runs run (``presets_runs.py``, ``presets_sb3.py``): each rlpipe run as a
 a subprocess, then ``python -m rlpipe.evaluate``; SB3 in a spawned process. ``--jobs`` runs go at
 once (rlpipe seed s and SB3 seed s side by side). Runs finished in ``--out`` by an earlier call
 are read, not run again, with the machine they ran on, so an interrupted benchmark continues
-(the hours-long presets from their last eval, on both sides) and the section can be made again.
+(the hours-long presets from their last eval, on both sides) and the section can be made again;
+``--read-only`` makes it from what ``--out`` holds and runs nothing (runs not there: left out).
 
     pip install -e ".[dev,bench]"
     python benchmarks/presets.py --sb3 --out runs/presets --append BENCHMARKS.md \
         --figure docs/presets_profile.png                                  # everything (long)
     python benchmarks/presets.py --presets dqn_cartpole --sb3 --out runs/presets
+    python benchmarks/presets.py --sb3 --out runs/presets --read-only --append BENCHMARKS.md
     python benchmarks/presets.py --presets dqn_cartpole --tune --seeds 0 1 2   # tuning
     python benchmarks/presets.py --presets dqn_cartpole --seeds 100 --frames 2000 \
         --final-episodes 3 --sb3                                           # smoke test
@@ -40,8 +42,8 @@ from pathlib import Path
 from common import compose_run, load_span, parser, publish_section, section_head
 from presets_figure import profile_figure
 from presets_report import profile_series, seed_text, tables
-from presets_runs import PACKAGES, Run, Scheduler, rlpipe_job
-from presets_sb3 import sb3_job
+from presets_runs import PACKAGES, Run, Scheduler, rlpipe_finished, rlpipe_job
+from presets_sb3 import sb3_finished, sb3_job
 from presets_table import PRESETS, Preset, seeds_for
 
 from rlpipe.config import Config
@@ -100,12 +102,18 @@ def arguments():
         "call are read, not run again (an interrupted benchmark continues)",
     )
     p.add_argument("--figure", type=Path, help="write the performance profile to this PNG")
+    p.add_argument(
+        "--read-only",
+        action="store_true",
+        help="run nothing: the section from the runs finished in --out (the others left out)",
+    )
     return p, p.parse_args()
 
 
 def checked(args) -> tuple[list[Preset], dict[str, tuple[int, ...]]]:
     """The presets and each one's seeds, or a one-line error for what the protocol refuses."""
     check(args.jobs >= 1, "--jobs must be at least 1")
+    check(args.out is not None or not args.read_only, "--read-only reads --out: name it")
     smoke = args.frames is not None or args.final_episodes is not None
     check(
         not (args.append and (args.tune or smoke)),
@@ -120,24 +128,32 @@ def checked(args) -> tuple[list[Preset], dict[str, tuple[int, ...]]]:
     return presets, seeds
 
 
-def plan(args, presets, seeds, configs, out: Path) -> list[list[tuple]]:
-    """The jobs, a group per preset and seed (rlpipe's run, and SB3's where it runs)."""
-    groups = []
+def plan(args, presets, seeds, configs, out: Path) -> tuple[list[list[tuple]], list[str]]:
+    """The jobs, a group per preset and seed (rlpipe's run, and SB3's where it runs), and with
+    ``--read-only`` the runs left out since ``out`` has no finished one."""
+    groups, missing = [], []
     for preset in presets:
         episodes = args.final_episodes or preset.final_episodes
         cfg = configs[preset.experiment]
         for seed in seeds[preset.experiment]:
             where = out / preset.experiment / f"seed{seed}"
             ours = partial(rlpipe_job, preset, cfg, seed, args.frames, episodes, where)
-            group = [(preset.experiment, seed, "rlpipe", partial(ours, args.override))]
+            jobs = [("rlpipe", partial(ours, args.override), rlpipe_finished)]
             if args.sb3 and preset.sb3 is not None:
-                theirs = partial(sb3_job, preset, cfg, seed, episodes, where)
-                group.append((preset.experiment, seed, "SB3", theirs))
-            groups.append(group)
-    return groups
+                jobs.append(
+                    ("SB3", partial(sb3_job, preset, cfg, seed, episodes, where), sb3_finished)
+                )
+            group = []
+            for which, job, finished in jobs:
+                if args.read_only and not finished(where):
+                    missing.append(f"{preset.experiment} seed {seed} ({which})")
+                else:
+                    group.append((preset.experiment, seed, which, job))
+            groups += [group] if group else []
+    return groups, missing
 
 
-def section(args, presets, configs, runs: list[Run], loads, wall: float) -> str:
+def section(args, presets, configs, runs: list[Run], loads, wall: float, missing) -> str:
     """The benchmark's section of BENCHMARKS.md."""
     used = seed_text(sorted({r.seed for r in runs}))
     title, seeds = (
@@ -164,6 +180,8 @@ def section(args, presets, configs, runs: list[Run], loads, wall: float) -> str:
             else ""
         ),
     ]
+    if missing:
+        facts.append(f"not in `--out`, left out (`--read-only`): {', '.join(missing)}")
     if args.figure is not None:
         shown = args.figure
         if args.append:
@@ -183,7 +201,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="presets-") as tmp:
         out = (args.out or Path(tmp)).resolve()
         print(f"presets: run dirs under {out}", file=sys.stderr)
-        groups = plan(args, presets, seeds, configs, out)
+        groups, missing = plan(args, presets, seeds, configs, out)
         loads, start = [os.getloadavg()], time.perf_counter()
         scheduler = Scheduler(args.jobs, sum(len(g) for g in groups))
         for group in groups:
@@ -194,7 +212,7 @@ def main() -> None:
     if args.figure is not None:
         used = f"seeds {seed_text(sorted({r.seed for r in runs}))}"
         profile_figure(profile_series(presets, runs), args.figure, used)
-    publish_section(section(args, presets, configs, runs, loads, wall), args.append)
+    publish_section(section(args, presets, configs, runs, loads, wall, missing), args.append)
 
 
 if __name__ == "__main__":

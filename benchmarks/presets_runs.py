@@ -96,6 +96,17 @@ def _call(args: list[str], log: Path, cwd: Path) -> None:
         raise RuntimeError(f"exit {code}: {lines[-1] if lines else '(no output)'} (log: {log})")
 
 
+def final_evals(run_dir: Path) -> list[Path]:
+    """The run's final greedy evaluations (``rlpipe.evaluate``'s JSON), oldest first."""
+    found = (run_dir / "evaluation").glob("trained-*.json")
+    return sorted(found, key=lambda p: p.stat().st_mtime)
+
+
+def rlpipe_finished(out: Path) -> bool:
+    """Whether ``out`` (a job's dir in ``--out``) holds a finished and evaluated rlpipe run."""
+    return (out / "run" / "summary.json").is_file() and bool(final_evals(out / "run"))
+
+
 def rlpipe_job(
     preset: Preset,
     cfg: Config,
@@ -119,10 +130,7 @@ def rlpipe_job(
         f"hydra.run.dir={run_dir}",
         *extra,
     ] + ([f"total_frames={frames}"] if frames is not None else [])
-    finals = sorted(
-        (run_dir / "evaluation").glob("trained-*.json"), key=lambda p: p.stat().st_mtime
-    )
-    reused = (run_dir / "summary.json").is_file() and bool(finals)  # an earlier call's run
+    reused = rlpipe_finished(out)  # an earlier call's run
     if reused:
         saved = json.loads(meta.read_text()) if meta.is_file() else {}
     else:
@@ -130,12 +138,9 @@ def rlpipe_job(
         _call(["-m", "rlpipe", *overrides], log, out)
         _call(["-m", "rlpipe.evaluate", f"run_dir={run_dir}", f"episodes={episodes}"], log, out)
         saved = record(meta, start)
-        finals = sorted(
-            (run_dir / "evaluation").glob("trained-*.json"), key=lambda p: p.stat().st_mtime
-        )
     seconds = dict(read_scalar(run_dir, "time/train_seconds"))
     evals = [(f, m, seconds[f]) for f, m in read_scalar(run_dir, "eval/return_mean")]
-    final = json.loads(finals[-1].read_text())["return_mean"]
+    final = json.loads(final_evals(run_dir)[-1].read_text())["return_mean"]
     return Run(preset.experiment, seed, "rlpipe", evals, final, reused=reused, **recorded(saved))
 
 

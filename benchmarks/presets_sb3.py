@@ -193,6 +193,11 @@ def run_sb3(job: Sb3Job) -> dict[str, Any]:
     return {"evals": callback.evals, "final": float(np.mean(final))}
 
 
+def sb3_finished(out: Path) -> bool:
+    """Whether ``out`` (a job's dir in ``--out``) holds a finished SB3 run."""
+    return (out / "sb3.json").is_file()
+
+
 def sb3_job(preset: Preset, cfg: Config, seed: int, episodes: int, out: Path) -> Run:
     """Run SB3 in a spawned process; its results also go to ``<out>/sb3.json``."""
     assert preset.sb3 is not None and cfg.total_frames is not None
@@ -211,7 +216,7 @@ def sb3_job(preset: Preset, cfg: Config, seed: int, episodes: int, out: Path) ->
         str(out / "sb3-saves") if preset.resumable else None,
     )
     saved = out / "sb3.json"
-    reused = saved.is_file()  # a finished run of an earlier call with this --out
+    reused = sb3_finished(out)  # a finished run of an earlier call with this --out
     if reused:
         result = json.loads(saved.read_text())
     else:

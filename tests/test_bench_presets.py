@@ -162,6 +162,11 @@ def test_a_tiny_run_beside_sb3_and_its_read_back(tmp_path) -> None:
     assert "| CartPole-v1 | 640 |" in row and "| 100 |" in row and row.count("|") == 16
     assert (tmp_path / "profile.png").stat().st_size > 10_000
     assert (tmp_path / "runs" / "dqn_cartpole" / "seed100" / "sb3.json").is_file()
-    again = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    # the same runs read back, and with --read-only a seed not in --out is left out, not run
+    again = subprocess.run(
+        [*command, "--read-only", "--seeds", "100", "101"], capture_output=True, text=True
+    )
     assert again.returncode == 0, again.stderr
     assert "2 of 2 runs read back" in again.stdout and row in again.stdout
+    left_out = "left out (`--read-only`): dqn_cartpole seed 101 (rlpipe), dqn_cartpole seed 101"
+    assert left_out in again.stdout
