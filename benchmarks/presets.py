@@ -30,6 +30,7 @@ are read, not run again, with the machine they ran on, so an interrupted benchma
 
 from __future__ import annotations
 
+import argparse
 import importlib.resources
 import importlib.util
 import os
@@ -76,7 +77,8 @@ def compose(preset: Preset, frames: int | None, extra: list[str]) -> Config:
         raise RlpipeError(f"+experiment={preset.experiment} does not compose: {e}") from e
 
 
-def arguments():
+def arguments() -> tuple[argparse.ArgumentParser, argparse.Namespace]:
+    """The command line's parser and its arguments."""
     p = parser(__doc__.splitlines()[0])
     p.set_defaults(seeds=None)  # None: each preset's held-out seeds
     p.add_argument("--presets", nargs="+", metavar="NAME", help=f"of: {', '.join(PRESETS)}")
@@ -110,7 +112,7 @@ def arguments():
     return p, p.parse_args()
 
 
-def checked(args) -> tuple[list[Preset], dict[str, tuple[int, ...]]]:
+def checked(args: argparse.Namespace) -> tuple[list[Preset], dict[str, tuple[int, ...]]]:
     """The presets and each one's seeds, or a one-line error for what the protocol refuses."""
     check(args.jobs >= 1, "--jobs must be at least 1")
     check(args.out is not None or not args.read_only, "--read-only reads --out: name it")
@@ -128,7 +130,13 @@ def checked(args) -> tuple[list[Preset], dict[str, tuple[int, ...]]]:
     return presets, seeds
 
 
-def plan(args, presets, seeds, configs, out: Path) -> tuple[list[list[tuple]], list[str]]:
+def plan(
+    args: argparse.Namespace,
+    presets: list[Preset],
+    seeds: dict[str, tuple[int, ...]],
+    configs: dict[str, Config],
+    out: Path,
+) -> tuple[list[list[tuple]], list[str]]:
     """The jobs, a group per preset and seed (rlpipe's run, and SB3's where it runs), and with
     ``--read-only`` the runs left out since ``out`` has no finished one."""
     groups, missing = [], []
@@ -153,7 +161,15 @@ def plan(args, presets, seeds, configs, out: Path) -> tuple[list[list[tuple]], l
     return groups, missing
 
 
-def section(args, presets, configs, runs: list[Run], loads, wall: float, missing) -> str:
+def section(
+    args: argparse.Namespace,
+    presets: list[Preset],
+    configs: dict[str, Config],
+    runs: list[Run],
+    loads: list[tuple[float, ...]],
+    wall: float,
+    missing: list[str],
+) -> str:
     """The benchmark's section of BENCHMARKS.md."""
     used = seed_text(sorted({r.seed for r in runs}))
     title, seeds = (
