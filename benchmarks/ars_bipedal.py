@@ -15,7 +15,15 @@ import os
 import time
 from pathlib import Path
 
-from common import compose_run, machine, parser, publish, read_scalar, table
+from common import (
+    compose_run,
+    load_span,
+    parser,
+    publish_section,
+    read_scalar,
+    section_head,
+    table,
+)
 
 from rlpipe.pipeline import train
 
@@ -39,8 +47,9 @@ def learning_curve(overrides: list[str], run_dir: Path) -> tuple[list[list[objec
     return rows, result
 
 
-def curve_report(title: str, rows: list[list[object]], target: float, note: str) -> str:
-    """The learning-curve table and the first evaluation reaching ``target``."""
+def curve_report(rows: list[list[object]], target: float, note: str) -> list[str]:
+    """One run's part of the section: what ran, its learning-curve table and the first
+    evaluation reaching ``target``."""
     hit = next((row for row in rows if row[1] >= target), None)
     reached = (
         f"first eval ≥ {target:g}: {hit[0]:,} frames, {hit[3]:.1f} s training, {hit[4]:.1f} s wall"
@@ -48,23 +57,8 @@ def curve_report(title: str, rows: list[list[object]], target: float, note: str)
         else f"eval mean never reached {target:g}"
     )
     cells = [[f"{f:,}", f"{m:.1f}", f"{s:.1f}", f"{t:.1f}", f"{w:.1f}"] for f, m, s, t, w in rows]
-    return "\n".join(
-        [
-            title,
-            "",
-            machine(["torch", "torchrl", "gymnasium"]),
-            f"· 1-min load average at the end {os.getloadavg()[0]:.2f}",
-            "",
-            note,
-            "",
-            table(
-                ["frames", "eval mean", "eval std", "train s", "wall s"],
-                cells,
-            ),
-            "",
-            reached,
-        ]
-    )
+    headers = ["frames", "eval mean", "eval std", "train s", "wall s"]
+    return [note, "", table(headers, cells), "", reached, ""]
 
 
 def main() -> None:
@@ -73,17 +67,24 @@ def main() -> None:
     p.add_argument("--run-dir", type=Path, help="default: outputs/ars_bipedal/<time>")
     p.set_defaults(seeds=[1])
     args = p.parse_args()
+    start, parts = os.getloadavg(), []
     for seed in args.seeds:
         run_dir = args.run_dir or Path("outputs/ars_bipedal") / time.strftime("%Y-%m-%d_%H-%M-%S")
         overrides = ["+experiment=ars_bipedal", f"seed={seed}", "progress=false", *args.overrides]
         rows, result = learning_curve(overrides, run_dir)
         note = (
-            f"`python -m rlpipe {' '.join(overrides)}` · final {result.eval_mean:.1f} ± "
-            f"{result.eval_std:.1f} over {result.eval_episodes} episodes · {result.frames:,} "
-            f"frames · {result.wall_time / 60:.1f} min · run dir {run_dir}"
+            f"**seed {seed}**: `python -m rlpipe {' '.join(overrides)}` · final "
+            f"{result.eval_mean:.1f} ± {result.eval_std:.1f} over {result.eval_episodes} "
+            f"episodes · {result.frames:,} frames · {result.wall_time / 60:.1f} min · run dir "
+            f"{run_dir}"
         )
-        title = f"### ARS on BipedalWalker-v3 (`+experiment=ars_bipedal`, seed {seed})"
-        publish(curve_report(title, rows, TARGET, note), args.append)
+        parts += curve_report(rows, TARGET, note)
+    head = section_head(
+        "ARS on BipedalWalker-v3 (`+experiment=ars_bipedal`)",
+        ["torch", "torchrl", "gymnasium"],
+        load_span(start, os.getloadavg()),
+    )
+    publish_section("\n".join(head + parts), args.append)
 
 
 if __name__ == "__main__":

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import os
 
-from common import machine, parser, publish, table, time_ars
+from common import load_span, parser, publish_section, section_head, table, time_ars
 
 RUNS = [("local", 1), ("local", 2), ("ray", 1), ("ray", 2)]
 
@@ -58,29 +58,17 @@ def main() -> None:
         for (backend, workers), r in results.items()
     ]
     efficiency = {b: rate[b, 2] / (2 * rate[b, 1]) for b in ("local", "ray")}
+    head = section_head(
+        "ARS on Ray vs local, BipedalWalker-v3",
+        ["torch", "torchrl", "gymnasium", "ray"],
+        load_span(load_before, load_after),
+        f"{args.iterations} iterations, seed {seed}",
+    )
+    headers = ["backend", "workers", "env steps", "wall s", "start-up s", "env-steps/s"]
     report = "\n".join(
         [
-            f"### ARS on Ray vs local, BipedalWalker-v3, {args.iterations} iterations, seed {seed}",
-            "",
-            f"`python benchmarks/ars_ray_scaling.py --iterations {args.iterations} --seeds {seed}`",
-            "",
-            machine(["torch", "torchrl", "gymnasium", "ray"]),
-            "· load average (1, 5, 15 min) "
-            + f"{', '.join(f'{x:.2f}' for x in load_before)} before, "
-            + f"{', '.join(f'{x:.2f}' for x in load_after)} after",
-            "",
-            table(
-                [
-                    "backend",
-                    "workers",
-                    "env steps",
-                    "wall s",
-                    "start-up s",
-                    "env-steps/s",
-                    "÷ local, same workers",
-                ],
-                rows,
-            ),
+            *head,
+            table([*headers, "÷ local, same workers"], rows),
             "",
             f"Scaling efficiency (2 workers ÷ (2 × 1 worker)): local {efficiency['local']:.2f}, "
             f"Ray {efficiency['ray']:.2f}. Runs whose final θ equals local/1's: "
@@ -88,7 +76,7 @@ def main() -> None:
             + " (Box2D carries state across resets: see the script's docstring).",
         ]
     )
-    publish(report, args.append)
+    publish_section(report, args.append)
 
 
 if __name__ == "__main__":

@@ -26,7 +26,7 @@ import os
 import time
 from statistics import median
 
-from common import machine, parser, publish, table, time_ars
+from common import load_span, parser, publish_section, section_head, table, time_ars
 from reference_ars import HP, ARSTrainer
 
 
@@ -82,7 +82,7 @@ def main() -> None:
     p.set_defaults(seeds=[1])
     args = p.parse_args()
     rows = []
-    load_before = os.getloadavg()[0]
+    load_before = os.getloadavg()
     cores = os.cpu_count() or 1
     reference = "reference (notebook loop, 1 process)"
     ceiling = f"ceiling: {cores} reference loops at once, 1 process each"
@@ -121,15 +121,15 @@ def main() -> None:
                     + (f" ({min(ratios):.2f}–{max(ratios):.2f})" if len(ratios) > 1 else ""),
                 ]
             )
-    load_after = os.getloadavg()[0]
+    head = section_head(
+        "ARS throughput on BipedalWalker-v3: rlpipe vs the notebook's loop",
+        ["torch", "torchrl", "gymnasium", "numpy"],
+        load_span(load_before, os.getloadavg()),
+        f"{args.iterations} iterations, median of {args.repeats} interleaved round(s) per seed",
+    )
     report = "\n".join(
         [
-            f"### ARS throughput, BipedalWalker-v3, {args.iterations} iterations, "
-            f"median of {args.repeats} interleaved round(s) per seed",
-            "",
-            machine(["torch", "torchrl", "gymnasium", "numpy"]),
-            f"· 1-min load average {load_before:.2f} before, {load_after:.2f} after",
-            "",
+            *head,
             table(
                 [
                     "seed",
@@ -148,7 +148,7 @@ def main() -> None:
             + "; ".join(of_ceiling),
         ]
     )
-    publish(report, args.append)
+    publish_section(report, args.append)
 
 
 if __name__ == "__main__":

@@ -15,17 +15,18 @@ iteration with 2 workers ÷ with 1 (below 1: the workers are faster).
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Callable
 from functools import partial
 from statistics import median
 
 import torch
-from common import machine, parser, publish, table
+from common import load_span, parser, publish_section, section_head, table
 from torch import nn
 
 from rlpipe import ARSConfig, ARSSearch, EnvConfig, make_env
-from rlpipe.algos.ars import backends, make_ars_policy
+from rlpipe.algos.ars import make_ars_policy, pool
 
 
 class LayerNormMLP(nn.Module):
@@ -81,9 +82,9 @@ def seconds_per_iteration(
     policy, normalizer = make_ars_policy(
         make_env(env_cfg), ARSConfig(), None if build is None else build(size, outputs)
     )
-    saved = backends.chunks_per_worker
+    saved = pool.chunks_per_worker
     if chunks is not None:  # the chunking of every policy before: small chunks whatever the cost
-        backends.chunks_per_worker = lambda *_args: chunks
+        pool.chunks_per_worker = lambda *_args: chunks
     try:
         search = ARSSearch(
             policy,
@@ -102,7 +103,7 @@ def seconds_per_iteration(
         rest = (time.perf_counter() - start) / (args.iterations - 1)
         search.close()
     finally:
-        backends.chunks_per_worker = saved
+        pool.chunks_per_worker = saved
     return first, rest
 
 
@@ -114,6 +115,7 @@ def main() -> None:
     p.add_argument("--max-steps", type=int, default=1000)
     args = p.parse_args()
     cells: dict[tuple[str, str, str], list[tuple[float, float]]] = {}
+    load_before = os.getloadavg()
     for _ in range(args.repeats):  # interleaved: a burst of load moves one round, not a column
         for env_id in args.envs:
             for network in NETWORKS:
@@ -140,11 +142,15 @@ def main() -> None:
                     f"{before / one:.2f}×",
                 ]
             )
-    report = "\n\n".join(
+    head = section_head(
+        "ARS workers vs one process, by policy",
+        ["torch", "torchrl", "gymnasium"],
+        load_span(load_before, os.getloadavg()),
+        f"{args.iterations} iterations, median of {args.repeats} interleaved round(s)",
+    )
+    report = "\n".join(
         [
-            f"### ARS workers vs one process, by policy ({args.iterations} iterations, median of "
-            f"{args.repeats} interleaved rounds)",
-            machine(["torch", "torchrl", "gymnasium"]),
+            *head,
             table(
                 [
                     "env",
@@ -161,7 +167,7 @@ def main() -> None:
             ),
         ]
     )
-    publish(report, args.append)
+    publish_section(report, args.append)
 
 
 if __name__ == "__main__":

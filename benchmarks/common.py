@@ -7,6 +7,7 @@ import csv
 import os
 import platform
 import re
+import shlex
 import subprocess
 import sys
 import time
@@ -37,10 +38,12 @@ def busy(on: bool):
 
 
 def parser(description: str) -> argparse.ArgumentParser:
-    """Arguments every benchmark takes: seeds and an optional Markdown file to append to."""
+    """Arguments every benchmark takes: seeds and an optional Markdown file to publish to."""
     p = argparse.ArgumentParser(description=description)
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
-    p.add_argument("--append", type=Path, help="append the table to this Markdown file")
+    p.add_argument(
+        "--append", type=Path, help="put the section into this Markdown file (replacing its own)"
+    )
     return p
 
 
@@ -140,15 +143,16 @@ def read_scalar(run_dir: Path, name: str) -> list[tuple[int, float]]:
 
 def replace_section(path: str | Path, text: str) -> None:
     """Put ``text`` (a Markdown section starting with its ``## `` heading) into ``path``: in place
-    of the section with the same heading, or at the end; the rest of the file is kept."""
+    of the section(s) with the same heading, or at the end; the rest of the file is kept, one
+    blank line between sections."""
     path = Path(path)
     heading = text.splitlines()[0]
     old = path.read_text() if path.is_file() else ""
-    sections = re.split(r"(?m)^(?=## )", old)
-    kept = [s for s in sections if s.splitlines()[:1] != [heading]]
-    at = next((i for i, s in enumerate(sections) if s.splitlines()[:1] == [heading]), len(kept))
-    kept.insert(at, text.rstrip("\n") + "\n\n")
-    path.write_text("".join(kept).rstrip("\n") + "\n")
+    sections = [s.rstrip("\n") for s in re.split(r"(?m)^(?=## )", old) if s.strip()]
+    same = [i for i, s in enumerate(sections) if s.splitlines()[0] == heading]
+    kept = [s for i, s in enumerate(sections) if i not in same]
+    kept.insert(same[0] if same else len(kept), text.rstrip("\n"))
+    path.write_text("\n\n".join(kept) + "\n")
 
 
 def publish_section(text: str, append: str | Path | None) -> None:
@@ -159,13 +163,19 @@ def publish_section(text: str, append: str | Path | None) -> None:
         replace_section(append, text)
 
 
-def publish(report: str, append: Path | None) -> None:
-    """Print the report and optionally append it to a Markdown file."""
-    print(report)
-    if append is not None:
-        with open(append, "a") as f:
-            f.write("\n" + report + "\n")
-        print(f"appended to {append}")
+def section_head(title: str, packages: Sequence[str], load: str, *facts: str) -> list[str]:
+    """The top of a benchmark's section of BENCHMARKS.md: ``## <title> (benchmarks/<script>)``,
+    then the machine and versions, the load, the exact command and ``facts``, a line each."""
+    script = f"benchmarks/{Path(sys.argv[0]).name}"
+    command = shlex.join(["python", script, *sys.argv[1:]])
+    head = [f"## {title} ({script})", "", f"- machine: {machine(packages)}", f"- load: {load}"]
+    return [*head, f"- command: `{command}`", *(f"- {fact}" for fact in facts), ""]
+
+
+def load_span(start: Sequence[float], end: Sequence[float]) -> str:
+    """The 1/5/15-min load averages at a measurement's start and end, in words."""
+    at = [", ".join(f"{x:.2f}" for x in load) for load in (start, end)]
+    return f"1/5/15-min load average {at[0]} at the start, {at[1]} at the end"
 
 
 def time_ars(seed: int, iterations: int, *overrides: str) -> dict:

@@ -21,7 +21,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from common import machine, publish, table
+from common import load_span, publish_section, section_head, table
 
 SETTINGS = {"default (threads=auto)": [], "threads=1": ["threads=1"], "threads=2": ["threads=2"]}
 CONDITIONS = ("alone", "beside a CPU-bound process")
@@ -56,9 +56,10 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--frames", type=int, default=4000)
     p.add_argument("--rounds", type=int, default=2, help="interleaved rounds per condition")
-    p.add_argument("--append", type=Path, help="append the table to this Markdown file")
+    p.add_argument("--append", type=Path, help="put the section into this Markdown file")
     args = p.parse_args()
     walls: dict[tuple[str, str], list[float]] = {}
+    load_before = os.getloadavg()
     for condition in CONDITIONS:
         busy = competitor() if condition != "alone" else None
         try:
@@ -78,12 +79,14 @@ def main() -> None:
             rows.append([condition, name, f"{median:.1f}", runs, f"{median / best:.2f}×"])
         ratio = medians["default (threads=auto)"] / best
         verdicts.append(f"{condition}: default / best = {ratio:.2f} (target ≤ {TARGET})")
+    head = section_head(
+        "Thread contention: the default run beside a busy core",
+        ["torch", "torchrl"],
+        load_span(load_before, os.getloadavg()),
+    )
     report = "\n".join(
         [
-            "### Thread contention: the default run beside a busy core",
-            "",
-            machine(["torch", "torchrl"]),
-            "",
+            *head,
             f"`python -m rlpipe total_frames={args.frames} eval_every=0 checkpoint_every=0 "
             f"logger=none progress=false [threads=N]` (DQN on CartPole-v1), {args.rounds} "
             "interleaved round(s) per condition; the competitor is `python -c 'while True: "
@@ -95,7 +98,7 @@ def main() -> None:
             *[f"- {line}" for line in verdicts],
         ]
     )
-    publish(report, args.append)
+    publish_section(report, args.append)
 
 
 if __name__ == "__main__":

@@ -22,16 +22,13 @@ from __future__ import annotations
 import os
 import time
 
+import common
 import torch
-from common import first_hit, hit_cells, machine, parser, publish, table, train_with_evals
+from common import first_hit, hit_cells, parser, table, train_with_evals
 
 PENDULUM_TARGET = -250.0
 CARTPOLE_TARGET = 50.0
 NO_CAP = 10**9  # train steps: the frame caps end the runs
-
-
-def load() -> str:
-    return "/".join(f"{x:.2f}" for x in os.getloadavg())
 
 
 def main() -> None:
@@ -44,7 +41,7 @@ def main() -> None:
     p.add_argument("--baseline-frames", type=int, default=200_000)
     args = p.parse_args()
     torch.set_num_threads(1)
-    load_before = load()
+    load_before = os.getloadavg()
     runs = [
         # (env, target, algorithm label, overrides, eval_every, max_frames)
         ("Pendulum-v1", PENDULUM_TARGET, "MBRL (CEM)", ["+experiment=mbrl_pendulum"],
@@ -87,15 +84,14 @@ def main() -> None:
                 ]
             )
             print(rows[-1], flush=True)
+    head = common.section_head(
+        "MBRL sample efficiency: frames and seconds to a target, vs ARS and REINFORCE",
+        ["torch", "torchrl", "tensordict", "gymnasium"],
+        common.load_span(load_before, os.getloadavg()),
+    )
     report = [
-        "### MBRL sample efficiency: frames and seconds to a target, vs ARS and REINFORCE",
-        "",
-        machine(["torch", "torchrl", "tensordict", "gymnasium"]),
-        f"· 1/5/15-min load average {load_before} before, {load()} after "
-        "(2 cores shared with other jobs)",
-        "",
-        f"`python benchmarks/mbrl_sample_efficiency.py --seeds {' '.join(map(str, args.seeds))}`"
-        f": targets Pendulum-v1 >= {PENDULUM_TARGET:.0f} and continuous CartPole (50-step "
+        *head,
+        f"Targets Pendulum-v1 >= {PENDULUM_TARGET:.0f} and continuous CartPole (50-step "
         f"horizon) {CARTPOLE_TARGET:.0f}, mean of {args.eval_episodes} greedy episodes. MBRL is "
         f"evaluated every {args.pendulum_eval:,} (Pendulum) / {args.cartpole_eval:,} (CartPole) "
         "frames, ARS and REINFORCE after every iteration/epoch; runs stop at the target or the "
@@ -116,7 +112,7 @@ def main() -> None:
             rows,
         ),
     ]
-    publish("\n".join(report), args.append)
+    common.publish_section("\n".join(report), args.append)
 
 
 if __name__ == "__main__":

@@ -27,6 +27,7 @@ Evaluation time is excluded from every clock.
 from __future__ import annotations
 
 import argparse
+import os
 
 import numpy as np
 import torch
@@ -34,9 +35,10 @@ from common import (
     compose_run,
     first_hit,
     hit_cells,
-    machine,
+    load_span,
     parser,
-    publish,
+    publish_section,
+    section_head,
     table,
     train_with_evals,
 )
@@ -124,6 +126,7 @@ def main() -> None:
     p.add_argument("--ars-iterations", type=int, default=300, help="cap for ARS")
     args = p.parse_args()
     torch.set_num_threads(1)
+    load_before = os.getloadavg()
     refs = [
         run_reference(seed, epochs=args.epochs, test_episodes=args.eval_episodes)
         for seed in args.seeds
@@ -148,11 +151,13 @@ def main() -> None:
         )
     cfg = compose_run(*CONTINUOUS["notebook defaults"])
     preset = compose_run(*CONTINUOUS["preset"]).algo
+    head = section_head(
+        "REINFORCE on the notebook's continuous CartPole: rlpipe vs the notebook's loop",
+        ["torch", "torchrl", "tensordict", "gymnasium"],
+        load_span(load_before, os.getloadavg()),
+    )
     report = [
-        "### REINFORCE on the notebook's continuous CartPole: rlpipe vs the notebook's loop",
-        "",
-        machine(["torch", "torchrl", "tensordict", "gymnasium"]),
-        "",
+        *head,
         f"`benchmarks/reference_reinforce.py` and `python -m rlpipe algo=reinforce "
         f"env=cartpole_continuous` (notebook defaults; num_envs={cfg.env.num_envs}, horizon "
         f"{cfg.env.max_episode_steps}) or `+experiment=reinforce_cartpole` (preset: "
@@ -199,7 +204,7 @@ def main() -> None:
             "",
             table(["seed", "frames to 50", "s to 50", "last eval"], ars_rows),
         ]
-    publish("\n".join(report), args.append)
+    publish_section("\n".join(report), args.append)
 
 
 if __name__ == "__main__":

@@ -1,9 +1,10 @@
-"""benchmarks/presets.py's SB3 saves (hours-long presets resume across calls): a kill at every
+"""benchmarks/presets_sb3.py's SB3 saves (hours-long presets resume across calls): a kill at every
 write point of a save leaves a complete save, the newest one that was finished, to resume from."""
 
 from __future__ import annotations
 
 import importlib
+import importlib.util
 import json
 import os
 import sys
@@ -18,7 +19,7 @@ BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 def presets():
     sys.path.insert(0, str(BENCHMARKS))
     try:
-        yield importlib.import_module("presets")
+        yield importlib.import_module("presets_sb3")
     finally:
         sys.path.remove(str(BENCHMARKS))
 
@@ -96,3 +97,23 @@ def test_a_save_killed_at_any_point_leaves_a_complete_one(presets, tmp_path, mon
     saves.save(FakeModel(3000), evals + [[3000, -1.0, 4.5]])
     assert sorted(p.name for p in tmp_path.iterdir()) == ["3000", "progress.json"]
     assert json.loads((tmp_path / "progress.json").read_text())["dir"] == "3000"
+
+
+@pytest.mark.skipif(
+    importlib.util.find_spec("sb3_contrib") is None, reason='needs the "bench" extra'
+)
+def test_an_sb3_run_with_the_zoos_normaliser_resumes_from_its_save(presets, tmp_path):
+    """sb3-contrib's ARS on the Zoo's VecNormalize: the save holds the normaliser, and a later
+    call with a larger budget goes on from the save's evals and frames."""
+    table = importlib.import_module("presets_table")
+    preset = table.PRESETS["ars_pendulum"]
+    job = presets.Sb3Job(
+        preset.env, 100, 1600, 800, 2, 2, preset.sb3, "ARS", "MlpPolicy", 1, True, str(tmp_path)
+    )
+    first = presets.run_sb3(job)
+    saved = json.loads((tmp_path / "progress.json").read_text())
+    # an ARS iteration is 2 x 4 Pendulum episodes of 200 steps: 1600 frames
+    assert saved["dir"] == "1600" and (tmp_path / "1600" / "normalizer.pkl").is_file()
+    resumed = presets.run_sb3(presets.Sb3Job(**{**job.__dict__, "frames": 3200}))
+    assert [e[0] for e in resumed["evals"]] == [800, 1600, 2400, 3200]
+    assert resumed["evals"][:2] == [tuple(e) for e in first["evals"]]

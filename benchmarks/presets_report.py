@@ -1,0 +1,252 @@
+"""The Markdown section of benchmarks/presets.py: a row per preset, the aggregate, a row per seed.
+
+Per preset: seeds solved (the protocol's rule: the last three evals' mean and the final greedy
+eval both ≥ the target), the interquartile mean (IQM) of the final evals with its 95% bootstrap
+interval over seeds, frames and training seconds to the target (first eval ≥ it: median and
+range over the seeds that reach it), the same for SB3 with the RL Zoo's settings on the same
+seeds, and the median over seeds both reach of rlpipe's training seconds to the target over
+SB3's. Over all presets: the IQM of the normalised finals with a 95% stratified-bootstrap
+interval (rliable's protocol), and the performance-profile figure (``presets_figure.py``).
+"""
+
+from __future__ import annotations
+
+import statistics
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from common import table
+from presets_runs import Run
+from presets_table import Preset
+
+from rlpipe.config import Config
+from rlpipe.stats import iqm, pooled_iqm, pooled_iqm_band
+
+DASH = "–"
+
+
+def seed_text(seeds: Sequence[int]) -> str:
+    """``100–109`` for a run of consecutive seeds, else the seeds listed."""
+    seeds = sorted(seeds)
+    if len(seeds) > 2 and seeds == list(range(seeds[0], seeds[-1] + 1)):
+        return f"{seeds[0]}–{seeds[-1]}"
+    return ", ".join(map(str, seeds)) or DASH
+
+
+def spread(values: Sequence[float], fmt: str) -> str:
+    """``median (min–max)`` of ``values``; ``–`` when there are none."""
+    if not values:
+        return DASH
+    low, high = min(values), max(values)
+    text = format(statistics.median(values), fmt)
+    return text if low == high else f"{text} ({low:{fmt}}–{high:{fmt}})"
+
+
+def iqm_cell(finals: Sequence[float]) -> str:
+    """The IQM of the finals with its 95% bootstrap interval over seeds."""
+    if not finals:
+        return DASH
+    low, high = pooled_iqm_band([np.asarray(finals, dtype=float)])
+    return f"{float(iqm(np.asarray(finals, dtype=float))):.1f} [{low:.1f}, {high:.1f}]"
+
+
+@dataclass
+class Side:
+    """One library's runs of one preset, and what the table says of them."""
+
+    preset: Preset
+    runs: list[Run]
+
+    @property
+    def finals(self) -> list[float]:
+        return [r.final for r in self.runs if r.final is not None]
+
+    @property
+    def normalised(self) -> np.ndarray:
+        """The finals on the scale where a random policy is 0 and the target 1."""
+        return np.array([self.preset.normalised(x) for x in self.finals])
+
+    @property
+    def hits(self) -> dict[int, tuple[int, float]]:
+        """seed -> (frames, training seconds) at its first eval ≥ the target."""
+        hits = {r.seed: r.hit(self.preset.target) for r in self.runs}
+        return {seed: hit for seed, hit in hits.items() if hit is not None}
+
+    def solved(self) -> str:
+        return f"{sum(r.solved(self.preset.target) for r in self.runs)}/{len(self.runs)}"
+
+    def to_target(self) -> tuple[str, str]:
+        """Frames and training seconds to the target: median (range), k/n reached."""
+        hits = self.hits.values()
+        reached = f"{len(hits)}/{len(self.runs)} reached"
+        frames = spread([h[0] for h in hits], ",.0f")
+        return (reached if not hits else f"{frames}, {reached}"), spread(
+            [h[1] for h in hits], ".1f"
+        )
+
+
+def seconds_to(run: Run, target: float) -> float | None:
+    """Training seconds at ``run``'s first eval ≥ ``target`` (None: never)."""
+    hit = run.hit(target)
+    return None if hit is None else hit[1]
+
+
+def ratio(ours: Side, theirs: Side, value: Callable[[Run], float | None]) -> str:
+    """Median over seeds of ``value(rlpipe run) / value(SB3 run)`` where both have one."""
+    mine = {r.seed: value(r) for r in ours.runs}
+    pairs = [(mine[r.seed], value(r)) for r in theirs.runs if r.seed in mine]
+    ratios = [a / b for a, b in pairs if a is not None and b]
+    return format(statistics.median(ratios), ".2f") if ratios else DASH
+
+
+def budget(cfg: Config, runs: list[Run]) -> str:
+    """The preset's frame budget (or its own: ARS iterations, REINFORCE epochs) and what ran."""
+    ends = sorted(r.evals[-1][0] for r in runs if r.evals)
+    ran = "" if not ends else f"{ends[0]:,}" + ("" if ends[0] == ends[-1] else f"–{ends[-1]:,}")
+    if cfg.total_frames is None:
+        own = next(k for k in ("iterations", "epochs") if hasattr(cfg.algo, k))
+        return f"{getattr(cfg.algo, own):,} {own}" + (f" (ran {ran} frames)" if ran else "")
+    shown = f"{cfg.total_frames:,}"
+    return shown if not ends or ends == [cfg.total_frames] * len(ends) else f"{shown} (ran {ran})"
+
+
+def summary_row(preset: Preset, cfg: Config, ours: Side, theirs: Side, where: str) -> list[str]:
+    """The preset's row of the main table."""
+    frames, seconds = ours.to_target()
+    cells = [f"`{preset.experiment}`", preset.env, budget(cfg, ours.runs), f"{preset.target:g}"]
+    cells += [seed_text([r.seed for r in ours.runs]), ours.solved(), iqm_cell(ours.finals)]
+    cells += [frames, seconds]
+    if not theirs.runs:
+        cells += [preset.no_sb3 or "not run (--sb3)", DASH, DASH, DASH, DASH]
+    else:
+        cells += [theirs.solved(), iqm_cell(theirs.finals), theirs.to_target()[1]]
+        cells.append(ratio(ours, theirs, lambda r: seconds_to(r, preset.target)))
+        cells.append(ratio(ours, theirs, lambda r: r.train_seconds))
+    return [*cells, where]
+
+
+def _hit_text(run: Run, target: float) -> str:
+    hit = run.hit(target)
+    return "not reached" if hit is None else f"{hit[0]:,} / {hit[1]:.1f} s"
+
+
+def _num(value: float | None) -> str:
+    return DASH if value is None else f"{value:.1f}"
+
+
+def detail_rows(preset: Preset, ours: Side, theirs: Side, label: dict[str, str]) -> list[list[str]]:
+    """One row per seed: rlpipe's figures and SB3's beside them."""
+    by_seed = {r.seed: r for r in theirs.runs}
+    rows = []
+    for r in ours.runs:
+        cells = [f"`{preset.experiment}`", str(r.seed)]
+        for run in (r, by_seed.get(r.seed)):
+            if run is None:
+                cells += [DASH] * 4
+            elif run.error:
+                cells += [f"failed: {run.error}", DASH, DASH, DASH]
+            else:
+                mark = "✓" if run.solved(preset.target) else "✗"
+                cells += [mark, _hit_text(run, preset.target), _num(run.last_three)]
+                cells.append(_num(run.final))
+        rows.append([*cells, label.get(r.machine, DASH)])
+    return rows
+
+
+def sides(presets: list[Preset], runs: list[Run], which: str) -> list[Side]:
+    """Each preset's runs of one library (``rlpipe`` or ``SB3``)."""
+    return [
+        Side(p, [r for r in runs if r.preset == p.experiment and r.which == which]) for p in presets
+    ]
+
+
+def profile_series(presets: list[Preset], runs: list[Run]) -> dict[str, list[np.ndarray]]:
+    """Each library's normalised finals, one array per preset with finished runs."""
+    series = {
+        w: [s.normalised for s in sides(presets, runs, w) if s.finals] for w in ("rlpipe", "SB3")
+    }
+    return {which: groups for which, groups in series.items() if groups}
+
+
+def aggregate(of: list[Side]) -> str:
+    """IQM of the normalised finals over every preset that has runs, with its 95%
+    stratified-bootstrap interval, and the seeds solved in all."""
+    groups = [s.normalised for s in of if s.finals]
+    if not groups:
+        return "no finished runs"
+    low, high = pooled_iqm_band(groups)
+    solved = sum(r.solved(s.preset.target) for s in of for r in s.runs)
+    runs = sum(len(s.runs) for s in of)
+    return (
+        f"IQM {pooled_iqm(groups):.2f} [{low:.2f}, {high:.2f}] over {len(groups)} preset(s), "
+        f"{sum(map(len, groups))} run(s); {solved}/{runs} seeds solved"
+    )
+
+
+def machines(runs: list[Run]) -> dict[str, str]:
+    """A short label (M1, M2, ...) for each machine the runs ran on."""
+    return {m: f"M{i}" for i, m in enumerate(dict.fromkeys(r.machine for r in runs), 1)}
+
+
+def note(p: Preset, cfg: Config) -> str:
+    """What the preset's row stands on: target and its source, tuning seeds, evals, SB3."""
+    text = (
+        f"- `{p.experiment}`: target {p.target:g} ({p.target_from}); random policy {p.floor:g}; "
+        f"tuned on seeds {seed_text(p.tuned_on)}; a greedy eval of {cfg.eval_episodes} episodes "
+        f"every {cfg.eval_every:,} frames and at the end"
+    )
+    if p.sb3 is None:
+        return f"{text}; {p.no_sb3}"
+    kwargs = ", ".join(f"{k}={v}" for k, v in {"n_envs": p.sb3_envs, **p.sb3}.items())
+    normalize = ", VecNormalize(norm_obs=True, norm_reward=False)" if p.sb3_normalize else ""
+    return f"{text}; SB3: {p.sb3_algo}('{p.sb3_policy}', {kwargs}{normalize})"
+
+
+HEADERS = [
+    "preset",
+    "env",
+    "budget (frames)",
+    "target",
+    "seeds",
+    "solved",
+    "final: IQM [95% CI]",
+    "frames to target",
+    "train s to target",
+    "SB3 solved",
+    "SB3 final: IQM [95% CI]",
+    "SB3 train s to target",
+    "rlpipe/SB3 s to target",
+    "rlpipe/SB3 s, whole run",
+    "machine",
+]
+DETAIL_HEADERS = ["preset", "seed", "solved", "frames / train s to target", "last three"]
+DETAIL_HEADERS += ["final", "SB3 solved", "SB3 frames / s to target", "SB3 last three"]
+DETAIL_HEADERS += ["SB3 final", "machine"]
+
+
+def tables(presets: list[Preset], configs: dict[str, Config], runs: list[Run]) -> list[str]:
+    """The main table, the aggregate line, the notes per preset, the per-seed table and the
+    machines' legend."""
+    label = machines(runs)
+    ours_all, theirs_all = sides(presets, runs, "rlpipe"), sides(presets, runs, "SB3")
+    rows, details = [], []
+    for p, ours, theirs in zip(presets, ours_all, theirs_all):
+        ran = [label[r.machine] for r in ours.runs + theirs.runs]
+        where = ", ".join(dict.fromkeys(ran)) or DASH
+        rows.append(summary_row(p, configs[p.experiment], ours, theirs, where))
+        details += detail_rows(p, ours, theirs, label)
+    measured = [s for s in theirs_all if s.runs]
+    summary = (
+        "Normalised finals ((final − random) / (target − random); 1 = the target): rlpipe "
+        + aggregate(ours_all)
+        + ("; SB3 " + aggregate(measured) if measured else "")
+        + "."
+    )
+    notes = [note(p, configs[p.experiment]) for p in presets]
+    legend = [f"- {tag}: {m}" for m, tag in label.items()]
+    return [table(HEADERS, rows), "", summary, "", *notes, "", table(DETAIL_HEADERS, details)] + [
+        "",
+        "Machines:",
+        *legend,
+    ]

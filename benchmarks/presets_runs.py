@@ -1,0 +1,191 @@
+"""Running benchmarks/presets.py's jobs: one rlpipe run as a user runs it, read back when done.
+
+Each rlpipe run is exactly what a user runs, in a subprocess (``SDL_VIDEODRIVER=dummy``):
+
+    python -m rlpipe +experiment=<preset> seed=<s> progress=false checkpoint_every=0 \
+        hydra.run.dir=<dir> [total_frames=<--frames>]
+    python -m rlpipe.evaluate run_dir=<dir> episodes=<final episodes>
+
+then its ``metrics/scalars/eval/return_mean.csv`` and ``time/train_seconds.csv`` give the evals
+(frames, mean, training seconds), ``evaluation/trained-*.json`` the final greedy eval, and
+``rlpipe.json`` the machine and load it ran on. A run finished in ``--out`` by an earlier call
+is read, not run again.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from common import machine, read_scalar
+from presets_table import Preset
+
+from rlpipe.config import Config
+
+PACKAGES = ["torch", "torchrl", "tensordict", "gymnasium", "stable_baselines3", "sb3_contrib"]
+UNRECORDED = "not recorded (a run of an earlier version of presets.py)"
+
+
+@dataclass
+class Run:
+    """One finished (or failed) run: its evals as (frames, mean, training seconds) rows."""
+
+    preset: str
+    seed: int
+    which: str  # "rlpipe" or "SB3"
+    evals: list[tuple[int, float, float]] = field(default_factory=list)
+    final: float | None = None  # the final greedy eval's mean
+    seconds: float = 0.0  # wall seconds of the whole job (training, evals, start-up)
+    error: str | None = None
+    reused: bool = False  # read from an earlier call's --out, not run by this one
+    machine: str = UNRECORDED  # machine() of the process that ran it
+    load: tuple[float, float] | None = None  # 1-min load average at its start and end
+
+    def hit(self, target: float) -> tuple[int, float] | None:
+        """(frames, training seconds) of the first eval reaching ``target``."""
+        return next(((f, s) for f, m, s in self.evals if m >= target - 1e-6), None)
+
+    @property
+    def train_seconds(self) -> float | None:
+        """Training seconds of the whole run (evaluations excluded): at its last eval."""
+        return self.evals[-1][2] if self.evals else None
+
+    @property
+    def last_three(self) -> float | None:
+        return float(np.mean([m for _, m, _ in self.evals[-3:]])) if self.evals else None
+
+    def solved(self, target: float) -> bool:
+        """The protocol's rule: the last three evals' mean and the final eval both ≥ target."""
+        last = self.last_three
+        return last is not None and self.final is not None and min(last, self.final) >= target
+
+
+def record(where: Path, start_load: float, **result: object) -> dict:
+    """Write ``result`` with this process's machine and the load at the start and now to
+    ``where`` (JSON); the record is what a later call reads back."""
+    saved = {**result, "machine": machine(PACKAGES), "load": [start_load, os.getloadavg()[0]]}
+    where.parent.mkdir(parents=True, exist_ok=True)
+    where.write_text(json.dumps(saved, indent=2) + "\n")
+    return saved
+
+
+def recorded(saved: dict) -> dict:
+    """The machine and load fields of a record (absent in earlier versions' records)."""
+    load = saved.get("load")
+    return {"machine": saved.get("machine", UNRECORDED), "load": tuple(load) if load else None}
+
+
+def _call(args: list[str], log: Path, cwd: Path) -> None:
+    """``python <args>`` with its output appended to ``log``; a failure raises its last line."""
+    env = {**os.environ, "SDL_VIDEODRIVER": "dummy"}
+    with open(log, "a") as f:
+        f.write(f"$ python {' '.join(args)}\n")
+        f.flush()
+        code = subprocess.call([sys.executable, *args], stdout=f, stderr=f, env=env, cwd=cwd)
+    if code != 0:
+        lines = [line for line in log.read_text().splitlines() if line.strip()]
+        raise RuntimeError(f"exit {code}: {lines[-1] if lines else '(no output)'} (log: {log})")
+
+
+def final_evals(run_dir: Path) -> list[Path]:
+    """The run's final greedy evaluations (``rlpipe.evaluate``'s JSON), oldest first."""
+    found = (run_dir / "evaluation").glob("trained-*.json")
+    return sorted(found, key=lambda p: p.stat().st_mtime)
+
+
+def rlpipe_finished(out: Path) -> bool:
+    """Whether ``out`` (a job's dir in ``--out``) holds a finished and evaluated rlpipe run."""
+    return (out / "run" / "summary.json").is_file() and bool(final_evals(out / "run"))
+
+
+def rlpipe_job(
+    preset: Preset,
+    cfg: Config,
+    seed: int,
+    frames: int | None,
+    episodes: int,
+    out: Path,
+    extra: Sequence[str] = (),
+) -> Run:
+    """Train the preset as a user would (plus the ``extra`` overrides), evaluate it, read its
+    metrics."""
+    run_dir = out / "run"  # not "rlpipe": cwd is on a -m module's path and would shadow it
+    out.mkdir(parents=True, exist_ok=True)
+    log, meta = out / "rlpipe.log", out / "rlpipe.json"
+    overrides = [
+        f"+experiment={preset.experiment}",
+        f"seed={seed}",
+        "progress=false",
+        # resumable: a checkpoint at every eval, and the same command continues a killed run
+        f"checkpoint_every={cfg.eval_every if preset.resumable else 0}",
+        f"hydra.run.dir={run_dir}",
+        *extra,
+    ] + ([f"total_frames={frames}"] if frames is not None else [])
+    reused = rlpipe_finished(out)  # an earlier call's run
+    if reused:
+        saved = json.loads(meta.read_text()) if meta.is_file() else {}
+    else:
+        start = os.getloadavg()[0]
+        _call(["-m", "rlpipe", *overrides], log, out)
+        _call(["-m", "rlpipe.evaluate", f"run_dir={run_dir}", f"episodes={episodes}"], log, out)
+        saved = record(meta, start)
+    seconds = dict(read_scalar(run_dir, "time/train_seconds"))
+    evals = [(f, m, seconds[f]) for f, m in read_scalar(run_dir, "eval/return_mean")]
+    final = json.loads(final_evals(run_dir)[-1].read_text())["return_mean"]
+    return Run(preset.experiment, seed, "rlpipe", evals, final, reused=reused, **recorded(saved))
+
+
+class Scheduler:
+    """Runs jobs ``jobs`` at a time, in order; the jobs of one group start together."""
+
+    def __init__(self, jobs: int, total: int) -> None:
+        self.jobs, self.total = jobs, total
+        self.slots = threading.Semaphore(jobs)
+        self.pool = ThreadPoolExecutor(jobs)
+        self.futures: list[Future[Run]] = []
+        self.start, self.done = time.perf_counter(), 0
+        self.lock = threading.Lock()
+
+    def group(self, jobs: Sequence[tuple[str, int, str, Callable[[], Run]]]) -> None:
+        """Start ``jobs`` (preset, seed, which, function) at once, as soon as there are slots."""
+        if len(jobs) > self.jobs:
+            for job in jobs:
+                self.group([job])
+            return
+        for _ in jobs:
+            self.slots.acquire()
+        self.futures += [self.pool.submit(self._run, *job) for job in jobs]
+
+    def _run(self, preset: str, seed: int, which: str, fn: Callable[[], Run]) -> Run:
+        start = time.perf_counter()
+        try:
+            run = fn()
+        except Exception as e:  # one failed run must not sink a long benchmark
+            run = Run(preset, seed, which, error=f"{type(e).__name__}: {e}")
+        finally:
+            self.slots.release()
+        run.seconds = time.perf_counter() - start
+        with self.lock:
+            self.done += 1
+            status = f"FAILED ({run.error})" if run.error else "done"
+            print(
+                f"presets: {preset} seed {seed} {which} {status} in {run.seconds:.0f} s "
+                f"({self.done}/{self.total} runs, {time.perf_counter() - self.start:.0f} s "
+                "elapsed)",
+                file=sys.stderr,
+                flush=True,
+            )
+        return run
+
+    def results(self) -> list[Run]:
+        self.pool.shutdown(wait=True)
+        return [f.result() for f in self.futures]

@@ -1,0 +1,172 @@
+"""benchmarks/presets.py: the held-out protocol, the solved rule, the table's figures on runs made
+up by hand, BENCHMARKS.md's section replacement, and a tiny run through the command line."""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import subprocess
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+
+from rlpipe.errors import RlpipeError
+
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+SCRIPT = BENCHMARKS / "presets.py"
+
+
+@pytest.fixture(scope="module")
+def bench():
+    sys.path.insert(0, str(BENCHMARKS))
+    try:
+        yield SimpleNamespace(
+            **{m: importlib.import_module(m) for m in ("common", "presets_runs", "presets_table")},
+            report=importlib.import_module("presets_report"),
+        )
+    finally:
+        sys.path.remove(str(BENCHMARKS))
+
+
+def test_published_runs_default_to_the_held_out_seeds(bench) -> None:
+    table = bench.presets_table
+    chosen = [table.PRESETS["dqn_cartpole"], table.PRESETS["sac_bipedal"]]
+    seeds = table.seeds_for(chosen, None, tune=False, overrides=[])
+    assert seeds == {"dqn_cartpole": tuple(range(100, 110)), "sac_bipedal": (100, 101, 102)}
+    assert table.seeds_for(chosen, [101], False, ["env.backend=gymnasium"])["sac_bipedal"] == (101,)
+    assert all(s < 100 for p in table.PRESETS.values() for s in p.tuned_on)
+
+
+@pytest.mark.parametrize(
+    "seeds, tune, overrides, message",
+    [
+        ([0, 1, 100], True, [], "--tune refuses held-out seeds (100)"),
+        (None, True, [], "--tune needs --seeds"),
+        ([0], False, [], "seed(s) 0: not dqn_cartpole's held-out seeds"),
+        ([105], False, ["algo.lr=1e-3"], "--override algo.lr=1e-3 changes the preset"),
+    ],
+)
+def test_the_protocol_refuses(bench, seeds, tune, overrides, message) -> None:
+    preset = bench.presets_table.PRESETS["dqn_cartpole"]
+    with pytest.raises(RlpipeError, match=None) as refused:
+        bench.presets_table.seeds_for([preset], seeds, tune, overrides)
+    assert message in str(refused.value) and "\n" not in str(refused.value)
+
+
+def test_tuning_runs_take_seeds_below_100(bench) -> None:
+    preset = bench.presets_table.PRESETS["dqn_cartpole"]
+    seeds = bench.presets_table.seeds_for([preset], [2, 0, 2], True, ["algo.lr=1e-3"])
+    assert seeds == {"dqn_cartpole": (2, 0)}
+
+
+def run(bench, seed, means, final, which="rlpipe", seconds=4.0):
+    evals = [(10_000 * (i + 1), m, seconds * (i + 1)) for i, m in enumerate(means)]
+    return bench.presets_runs.Run("dqn_cartpole", seed, which, evals, final, machine="box")
+
+
+def test_solved_needs_the_last_three_evals_and_the_final_eval(bench) -> None:
+    assert run(bench, 100, [100, 500, 500, 500], 500.0).solved(500)
+    assert not run(bench, 100, [500, 480, 500, 500], 500.0).solved(500)  # last three: 493.3
+    assert not run(bench, 100, [500, 500, 500], 499.0).solved(500)  # the final eval below
+    assert not run(bench, 100, [500, 500, 500], None).solved(500)  # no final eval
+
+
+def test_the_row_of_a_preset(bench) -> None:
+    preset = bench.presets_table.PRESETS["dqn_cartpole"]
+    report = bench.report
+    ours = report.Side(
+        preset,
+        [
+            run(bench, 100, [200, 500, 500, 500], 500.0),  # solved; 500 at 20k frames, 8 s
+            run(bench, 101, [500, 480, 500, 500], 500.0),  # 500 at 10k, 4 s; last three 493.3
+            run(bench, 102, [100, 200, 500, 500], 480.0),  # 500 at 30k, 12 s; final below
+        ],
+    )
+    theirs = report.Side(
+        preset,
+        [
+            run(bench, 100, [100, 200, 500, 500], 500.0, "SB3", 8.0),  # 500 at 24 s; last three 400
+            run(bench, 101, [500, 500, 500, 500], 500.0, "SB3", 8.0),  # 500 at 8 s
+            run(bench, 102, [100, 100, 100, 100], 100.0, "SB3", 8.0),
+        ],
+    )
+    cfg = SimpleNamespace(total_frames=40_000)
+    row = dict(zip(report.HEADERS, report.summary_row(preset, cfg, ours, theirs, "M1")))
+    assert row["seeds"] == "100–102" and row["solved"] == "1/3" and row["SB3 solved"] == "1/3"
+    assert row["frames to target"] == "20,000 (10,000–30,000), 3/3 reached"
+    assert row["train s to target"] == "8.0 (4.0–12.0)"
+    assert row["final: IQM [95% CI]"] == "493.3 [480.0, 500.0]"  # three runs: nothing cut
+    assert row["SB3 train s to target"] == "16.0 (8.0–24.0)"
+    assert row["rlpipe/SB3 s to target"] == "0.42"  # median of 8/24 and 4/8
+    assert row["rlpipe/SB3 s, whole run"] == "0.50"  # 16 s against 32 s on every seed
+    assert row["budget (frames)"] == "40,000" and row["machine"] == "M1"
+
+
+def test_presets_without_sb3_say_why(bench) -> None:
+    preset = bench.presets_table.PRESETS["mbrl_pendulum"]
+    report = bench.report
+    ours = report.Side(preset, [run(bench, 100, [-300, -200, -180], -190.0)])
+    cfg = SimpleNamespace(total_frames=30_000)
+    row = dict(
+        zip(report.HEADERS, report.summary_row(preset, cfg, ours, report.Side(preset, []), "M1"))
+    )
+    assert row["SB3 solved"] == "SB3 has no model-based RL" and row["solved"] == "1/1"
+
+
+def test_the_aggregate_is_normalised_by_the_target(bench) -> None:
+    table, report = bench.presets_table, bench.report
+    cartpole, pendulum = table.PRESETS["dqn_cartpole"], table.PRESETS["sac_pendulum"]
+    assert cartpole.normalised(500.0) == 1.0 and cartpole.normalised(cartpole.floor) == 0.0
+    assert pendulum.normalised(-157.0) == 1.0 and pendulum.normalised(-150.0) > 1.0
+    sides = [
+        report.Side(cartpole, [run(bench, s, [500] * 3, 500.0) for s in (100, 101)]),
+        report.Side(pendulum, [run(bench, s, [-157] * 3, -157.0) for s in (100, 101)]),
+    ]
+    assert report.aggregate(sides).startswith("IQM 1.00 [1.00, 1.00] over 2 preset(s), 4 run(s)")
+
+
+def test_a_section_replaces_its_own_and_keeps_the_rest(bench, tmp_path) -> None:
+    page = tmp_path / "BENCHMARKS.md"
+    page.write_text("# Benchmarks\n\nindex\n\n## A (benchmarks/a.py)\n\nold a\n## B (x)\n\nb\n")
+    bench.common.replace_section(page, "## A (benchmarks/a.py)\n\nnew a\n")
+    bench.common.replace_section(page, "## C (benchmarks/c.py)\n\nc\n")
+    assert page.read_text() == (
+        "# Benchmarks\n\nindex\n\n## A (benchmarks/a.py)\n\nnew a\n\n## B (x)\n\nb\n\n"
+        "## C (benchmarks/c.py)\n\nc\n"
+    )
+
+
+def test_a_refused_call_is_one_line_and_writes_nothing(tmp_path) -> None:
+    page = tmp_path / "BENCHMARKS.md"
+    page.write_text("mine\n")
+    command = [sys.executable, str(SCRIPT), "--presets", "dqn_cartpole", "--tune"]
+    proc = subprocess.run(
+        [*command, "--seeds", "3", "104", "--append", str(page)], capture_output=True, text=True
+    )
+    assert proc.returncode == 2 and page.read_text() == "mine\n"
+    assert proc.stderr.strip().splitlines()[-1].startswith("presets.py: error: --append publishes")
+
+
+@pytest.mark.skipif(
+    importlib.util.find_spec("stable_baselines3") is None, reason='needs the "bench" extra'
+)
+def test_a_tiny_run_beside_sb3_and_its_read_back(tmp_path) -> None:
+    command = [sys.executable, str(SCRIPT), "--presets", "dqn_cartpole", "--seeds", "100"]
+    command += ["--frames", "640", "--final-episodes", "2", "--sb3", "--jobs", "2"]
+    command += ["--out", str(tmp_path / "runs"), "--figure", str(tmp_path / "profile.png")]
+    first = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    assert first.returncode == 0, first.stderr
+    row = next(line for line in first.stdout.splitlines() if line.startswith("| `dqn_cartpole`"))
+    assert "| CartPole-v1 | 640 |" in row and "| 100 |" in row and row.count("|") == 16
+    assert (tmp_path / "profile.png").stat().st_size > 10_000
+    assert (tmp_path / "runs" / "dqn_cartpole" / "seed100" / "sb3.json").is_file()
+    # the same runs read back, and with --read-only a seed not in --out is left out, not run
+    again = subprocess.run(
+        [*command, "--read-only", "--seeds", "100", "101"], capture_output=True, text=True
+    )
+    assert again.returncode == 0, again.stderr
+    assert "2 of 2 runs read back" in again.stdout and row in again.stdout
+    left_out = "left out (`--read-only`): dqn_cartpole seed 101 (rlpipe), dqn_cartpole seed 101"
+    assert left_out in again.stdout
