@@ -3,11 +3,11 @@ their defaults, the other entry points and a few examples (Hydra's own: ``--hydr
 
 from __future__ import annotations
 
-import importlib.resources
 import textwrap
 from dataclasses import MISSING, fields
 
 from rlpipe.config import Config
+from rlpipe.registry import ALGORITHMS
 
 # the groups a user picks from, as the command line names them, and what each holds
 GROUPS = {
@@ -48,9 +48,10 @@ EXAMPLES = {
 
 
 def options(group: str) -> list[str]:
-    """The options of a config group: the YAML files the package ships under ``conf/<group>``."""
-    folder = importlib.resources.files("rlpipe.conf") / group.lstrip("+")
-    return sorted(p.name[: -len(".yaml")] for p in folder.iterdir() if p.name.endswith(".yaml"))
+    """The options of a config group: the registered algorithms for ``algo`` (plug-ins
+    included), else the YAML files under ``<group>/`` of rlpipe's and the plug-ins' config
+    folders."""
+    return sorted(ALGORITHMS) if group == "algo" else ALGORITHMS.conf_options(group.lstrip("+"))
 
 
 def help_text() -> str:
