@@ -82,6 +82,8 @@ def help_text() -> str:
     lines += [
         "",
         "python -m rlpipe [overrides] --cfg job prints the composed config; --hydra-help: Hydra's",
-        "own flags. README.md and docs/ explain every key.",
+        "own flags. README.md and docs/ explain every key. Algorithms from your own modules: name",
+        "them in RLPIPE_PLUGINS=<module>, or install a package with an rlpipe.algorithms entry",
+        "point (docs/api.md, plug-ins).",
     ]
     return "\n".join(lines)
