@@ -29,7 +29,7 @@ from tensordict.nn import TensorDictSequential
 from torch import nn
 from torchrl.data import Bounded
 from torchrl.envs import EnvBase
-from torchrl.modules import MLP, TanhModule
+from torchrl.modules import TanhModule
 from torchrl.objectives import TD3Loss
 
 import rlpipe
@@ -38,7 +38,7 @@ from rlpipe.algos.configs import OffPolicyConfig
 from rlpipe.algos.offpolicy import ForeachSoftUpdate, OffPolicy
 from rlpipe.config import checked
 from rlpipe.envs import is_discrete, observation_size
-from rlpipe.models import TensorModule
+from rlpipe.models import TensorModule, mlp
 
 
 @dataclass
@@ -103,7 +103,7 @@ class TD3(OffPolicy):
         self.policy = TensorDictSequential(
             TensorModule(net, ["observation"], ["action"]), TanhModule(["action"], spec=spec)
         ).to(self.device)
-        critic = MLP(n_obs + size, 1, num_cells=cfg.hidden_sizes, activation_class=nn.ReLU)
+        critic = mlp(n_obs + size, 1, cfg.hidden_sizes)  # Q(s, a): TorchRL's MLP concatenates
         low, high = (bound.to(self.device) for bound in (spec.space.low, spec.space.high))
         half = (high - low) / 2
         self.loss = TD3Loss(

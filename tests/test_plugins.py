@@ -218,3 +218,31 @@ def test_an_installed_td3_sweeps_its_preset_and_plots(tmp_path):
     )
     plotted = run_module("rlpipe.plot", str(sweep), cwd=tmp_path)  # metrics: no plug-in needed
     assert plotted.returncode == 0 and (sweep / "curves.png").is_file()
+
+
+@pytest.mark.parametrize(
+    ("args", "plugins", "message"),
+    [
+        (
+            ["algo=td3"],
+            None,
+            "unknown algo option 'td3'; choose one of: ars, dqn, mbrl, ppo, reinforce, sac; an "
+            "algorithm from outside rlpipe: install the package that provides it",
+        ),
+        (["--help"], "no_such_plugin", "RLPIPE_PLUGINS names module 'no_such_plugin', which does"),
+        (
+            ["algo=dqn"],
+            "no_such_plugin",
+            "RLPIPE_PLUGINS names module 'no_such_plugin', which does",
+        ),
+    ],
+    ids=["unknown-algo", "help-missing-plugin", "train-missing-plugin"],
+)
+def test_the_command_line_says_how_to_bring_an_algorithm_in_one_line(
+    tmp_path, args, plugins, message
+):
+    env = {"RLPIPE_PLUGINS": plugins} if plugins else None
+    done = run_module("rlpipe", *args, f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path, env=env)
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode == 2 and len(lines) == 1 and message in lines[0], done.stderr
+    assert not (tmp_path / "run").exists()
