@@ -97,9 +97,11 @@ def test_an_entry_point_registers_its_algorithm_when_it_is_asked_for(
     assert "sac" in registry and "toy_plugin" not in sys.modules  # a known name loads nothing
     assert "toy" in registry and registry.config("toy").__name__ == "ToyConfig"
     assert "toy_plugin.algo" not in sys.modules  # the builder: when it is built
-    # listing loads every entry point, but none claims a name already registered (dqn)
-    assert sorted(registry) == ["ars", "dqn", "mbrl", "ppo", "reinforce", "sac", "toy"]
-    assert registry.conf_options("tuned")[-1] == "toy_cartpole"
+    # listing loads every entry point but one named after a registered algorithm (dqn, whose
+    # module would not import): no error, dqn still rlpipe's
+    assert {"ars", "dqn", "mbrl", "ppo", "reinforce", "sac", "toy"} <= set(registry)
+    assert registry.builder("dqn").__module__ == "rlpipe.algos.dqn"
+    assert "toy_cartpole" in registry.conf_options("tuned")
 
 
 @pytest.mark.parametrize(
