@@ -9,9 +9,14 @@ import sys
 def main() -> None:
     """Console entry point: ``--help`` (ours; Hydra's own: ``--hydra-help``), or the command."""
     if {"-h", "--help"} & set(sys.argv[1:]):
+        from rlpipe.errors import RlpipeError
         from rlpipe.help import help_text
 
-        print(help_text())
+        try:
+            print(help_text())
+        except RlpipeError as err:  # a plug-in that does not import
+            print(f"rlpipe: error: {err}", file=sys.stderr)
+            sys.exit(2)
         return
     from rlpipe.command import main as command
 

@@ -12,8 +12,11 @@ from collections.abc import Callable, Iterator, Sequence
 from typing import Any, NoReturn
 
 from hydra import compose, initialize_config_module
+from hydra.core.config_search_path import ConfigSearchPath
 from hydra.core.config_store import ConfigStore
+from hydra.core.plugins import Plugins
 from hydra.errors import HydraException, MissingConfigException
+from hydra.plugins.search_path_plugin import SearchPathPlugin
 from omegaconf import MISSING, DictConfig, OmegaConf, open_dict
 from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
 
@@ -21,7 +24,7 @@ from rlpipe.config import Config, EnvConfig
 from rlpipe.console import say
 from rlpipe.errors import RlpipeError, check
 from rlpipe.outcomes import Interrupted
-from rlpipe.registry import ALGORITHMS
+from rlpipe.registry import ALGORITHMS, how_to_register
 
 USER_ERRORS = (RlpipeError, HydraException, OmegaConfBaseException)
 # Hydra launcher/sweeper plugins and the rlpipe extra that installs each
@@ -34,13 +37,29 @@ PLUGIN_EXTRAS = {
 }
 
 
+class PluginSearchPath(SearchPathPlugin):
+    """Hydra's config search path plus the config folders of registered algorithms
+    (``rlpipe.register(..., conf=...)``): a plug-in's tuned settings and presets."""
+
+    def manipulate_search_path(self, search_path: ConfigSearchPath) -> None:
+        for entry in ALGORITHMS.search_path():
+            search_path.append("rlpipe-plugin", entry)
+
+
 def register_configs() -> None:
-    """Store the dataclass schemas so Hydra type-checks every config file and override."""
+    """Store the dataclass schemas so Hydra type-checks every config file and override, add the
+    registered algorithms' config folders to Hydra's search path, and make each algorithm
+    without an ``algo/<name>.yaml`` there an ``algo`` option: its schema."""
     store = ConfigStore.instance()
     # env.id has no default on the command line: every conf/env file (or env.id=...) sets it
     store.store(name="rlpipe_config", node=Config(env=EnvConfig(id=MISSING), algo=MISSING))
+    Plugins.instance().register(PluginSearchPath)
+    files = set(ALGORITHMS.conf_options("algo"))
     for name in ALGORITHMS:  # their configs only: no algorithm module (nor torch) is imported
-        store.store(group="schema/algo", name=name, node=ALGORITHMS.config(name))
+        schema = ALGORITHMS.config(name)
+        store.store(group="schema/algo", name=name, node=schema)
+        if name not in files:  # a file and a schema of one name: Hydra's deprecated matching
+            store.store(group="algo", name=name, node=schema)
     # hydra/sweeper=optuna: Hydra's plugin scan finds it in an installed rlpipe, not in an
     # editable one (whose import hook the scan does not see); importing it stores its configs
     from rlpipe.optuna_search import PLUGIN
@@ -51,8 +70,6 @@ def register_configs() -> None:
 def register_sweeper() -> None:
     """Hand Hydra rlpipe's Optuna sweeper class (before a sweep: Hydra's first use of its plugins
     scans them all)."""
-    from hydra.core.plugins import Plugins
-
     from rlpipe.optuna_search import PLUGIN
 
     Plugins.instance().register(importlib.import_module(PLUGIN).OptunaSweeper)
@@ -114,7 +131,10 @@ def check_choices(choices: DictConfig) -> None:
     preset = choices.get("experiment")
     if not preset:
         return
-    source = importlib.resources.files("rlpipe.conf") / "experiment" / f"{preset}.yaml"
+    files = (folder / "experiment" / f"{preset}.yaml" for folder in ALGORITHMS.conf_folders())
+    source = next((path for path in files if path.is_file()), None)
+    if source is None:  # a preset from a folder on hydra.searchpath: not ours to check
+        return
     wanted = {
         next(iter(entry)).split()[-1].strip("/"): next(iter(entry.values()))
         for entry in OmegaConf.load(source).get("defaults", [])
@@ -134,10 +154,16 @@ def tuned_notice(choices: DictConfig) -> str | None:
     tuned = choices.get("tuned")
     if not tuned:
         return None
+    algo = choices.get("algo")
+    ours = importlib.resources.files("rlpipe.conf") / "tuned" / f"{tuned}.yaml"
+    where = (
+        f"conf/tuned/{tuned}.yaml, results in BENCHMARKS.md"
+        if ours.is_file()
+        else f"tuned/{tuned}.yaml in {algo}'s config folder"
+    )
     return (
-        f"rlpipe: {choices.get('algo')} on env={choices.get('env')} with its tuned settings "
-        f"(conf/tuned/{tuned}.yaml, results in BENCHMARKS.md); the algorithm's own defaults "
-        "instead: add ~tuned"
+        f"rlpipe: {algo} on env={choices.get('env')} with its tuned settings ({where}); the "
+        "algorithm's own defaults instead: add ~tuned"
     )
 
 
@@ -184,6 +210,8 @@ def format_error(err: BaseException) -> str:
         message = f"unknown {group} option {name!r}; choose one of: {', '.join(err.options)}"
         if group.startswith("hydra/") and name in PLUGIN_EXTRAS:
             message += f'; install it with: pip install "rlpipe[{PLUGIN_EXTRAS[name]}]"'
+        elif group == "algo":
+            message += f"; an algorithm from outside rlpipe: {how_to_register(name)}"
         return message
     if isinstance(err, MissingMandatoryValue):
         return f"{err.full_key} must be set, e.g. python -m rlpipe {err.full_key}=<value>"

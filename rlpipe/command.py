@@ -44,8 +44,8 @@ from rlpipe.sweep_summary import REJECTED
 
 def main() -> None:
     """Run the command on ``sys.argv``; user errors end in one line and exit 2."""
-    register_configs()
     try:
+        register_configs()  # a plug-in that does not import: one line
         argv = open_entries(resume_in_place(resume_sweep(sys.argv[1:])))
         sys.argv[1:] = argv = quote_letters(argv)
         check_launcher(argv)

@@ -21,7 +21,7 @@ import yaml
 from omegaconf import OmegaConf
 
 from rlpipe.errors import RULES, RlpipeError, check, check_choice
-from rlpipe.registry import ALGORITHMS, config_class
+from rlpipe.registry import ALGORITHMS, PluginError, UnknownAlgorithm, config_class
 
 # the run's length and cadence: top-level keys of Config that default to the algorithm's own
 RUN_KEYS = ("total_frames", "eval_every", "eval_episodes", "checkpoint_every")
@@ -218,6 +218,8 @@ def config_from_yaml(data: bytes, path: Path, *, allow_code: bool = False) -> Co
         if not (isinstance(loaded, dict) and isinstance(loaded.get("algo"), dict)):
             raise ValueError("not a run config")
         cfg = config_from_dict(loaded)
+    except PluginError as err:  # rlpipe wrote it, for an algorithm from outside rlpipe
+        raise RlpipeError(f"{path}: {err}") from err
     except (RlpipeError, yaml.YAMLError, TypeError, ValueError, KeyError, AttributeError) as err:
         reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         raise RlpipeError(f"{path} is damaged ({reason}); it is not a config rlpipe wrote") from err
@@ -234,10 +236,14 @@ def config_from_yaml(data: bytes, path: Path, *, allow_code: bool = False) -> Co
 
 def config_from_dict(data: dict[str, Any]) -> Config:
     """Rebuild a :class:`Config` (value checks included) from :func:`config_to_dict` output;
-    keys a newer or older version does not know are dropped, missing ones take the default."""
+    keys a newer or older version does not know are dropped, missing ones take the default.
+    An algorithm name that is not registered raises :class:`~rlpipe.registry.UnknownAlgorithm`."""
     data = _with_legacy_env(data)
     algo = dict(data.pop("algo"))
-    check(algo.get("name") in ALGORITHMS, f"unknown algorithm {algo.get('name')!r} in config")
+    name = algo.get("name")
+    check(isinstance(name, str) and name.isidentifier(), f"no algorithm name, got {name!r}")
+    if name not in ALGORITHMS:
+        raise UnknownAlgorithm(name)
     return Config(
         env=_build(EnvConfig, data.pop("env")),
         algo=_build(ALGORITHMS.config(algo["name"]), algo),

@@ -3,11 +3,11 @@ their defaults, the other entry points and a few examples (Hydra's own: ``--hydr
 
 from __future__ import annotations
 
-import importlib.resources
 import textwrap
 from dataclasses import MISSING, fields
 
 from rlpipe.config import Config
+from rlpipe.registry import ALGORITHMS
 
 # the groups a user picks from, as the command line names them, and what each holds
 GROUPS = {
@@ -49,9 +49,10 @@ EXAMPLES = {
 
 
 def options(group: str) -> list[str]:
-    """The options of a config group: the YAML files the package ships under ``conf/<group>``."""
-    folder = importlib.resources.files("rlpipe.conf") / group.lstrip("+")
-    return sorted(p.name[: -len(".yaml")] for p in folder.iterdir() if p.name.endswith(".yaml"))
+    """The options of a config group: the registered algorithms for ``algo`` (plug-ins
+    included), else the YAML files under ``<group>/`` of rlpipe's and the plug-ins' config
+    folders."""
+    return sorted(ALGORITHMS) if group == "algo" else ALGORITHMS.conf_options(group.lstrip("+"))
 
 
 def help_text() -> str:
@@ -82,6 +83,8 @@ def help_text() -> str:
     lines += [
         "",
         "python -m rlpipe [overrides] --cfg job prints the composed config; --hydra-help: Hydra's",
-        "own flags. README.md and docs/ explain every key.",
+        "own flags. README.md and docs/ explain every key. Algorithms from your own modules: name",
+        "them in RLPIPE_PLUGINS=<module>, or install a package with an rlpipe.algorithms entry",
+        "point (docs/api.md, plug-ins).",
     ]
     return "\n".join(lines)

@@ -31,11 +31,16 @@ NEWEST = "ckpt_000000000200.pt"
 
 
 def run_module(
-    module: str, *args: str, cwd: Path, timeout: float = 300, pythonpath: Path | None = None
+    module: str,
+    *args: str,
+    cwd: Path,
+    timeout: float = 300,
+    pythonpath: Path | None = None,
+    env: dict[str, str] | None = None,
 ) -> subprocess.CompletedProcess:
-    """``python -m <module> args...`` in ``cwd`` (``pythonpath``: a folder to import from);
-    returns the completed process (text output)."""
-    env = {**os.environ, "SDL_VIDEODRIVER": "dummy"}
+    """``python -m <module> args...`` in ``cwd`` (``pythonpath``: a folder to import from;
+    ``env``: more environment variables); returns the completed process (text output)."""
+    env = {**os.environ, "SDL_VIDEODRIVER": "dummy", **(env or {})}
     if pythonpath is not None:
         env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(pythonpath), env.get("PYTHONPATH")]))
     env.pop("HYDRA_FULL_ERROR", None)
@@ -114,3 +119,21 @@ def finished_run(tmp_path_factory) -> Path:
 def run_copy(tmp_path, finished_run) -> Path:
     """A copy of the finished run of its own, ``tmp_path/run``."""
     return Path(shutil.copytree(finished_run, tmp_path / "run"))
+
+
+@pytest.fixture
+def registry(monkeypatch, tmp_path):
+    """The global algorithm registry, restored after the test, with the plug-in modules the test
+    imported (from ``tmp_path`` or ``examples/``) forgotten: each test registers afresh."""
+    from rlpipe.registry import ALGORITHMS
+
+    monkeypatch.setattr(ALGORITHMS, "_entries", dict(ALGORITHMS._entries))
+    monkeypatch.setattr(ALGORITHMS, "_entry_points_read", set())  # no entry point loaded yet
+    monkeypatch.setattr(ALGORITHMS, "_variable_read", False)
+    monkeypatch.delenv("RLPIPE_PLUGINS", raising=False)
+    before = set(sys.modules)
+    yield ALGORITHMS
+    folders = (str(tmp_path), str(Path(__file__).resolve().parents[1] / "examples"))
+    for name in set(sys.modules) - before:
+        if str(getattr(sys.modules[name], "__file__", None)).startswith(folders):
+            del sys.modules[name]

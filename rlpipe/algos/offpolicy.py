@@ -4,6 +4,8 @@ template, from TorchRL parts: the Collector, a ReplayBuffer and a target updater
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
@@ -23,19 +25,22 @@ class OffPolicy(EnvAlgorithm):
     transitions (:meth:`transitions`) in a replay buffer of ``cfg.buffer_size``; once
     ``cfg.learning_starts`` frames (and a minibatch) are in, run ``cfg.updates_per_batch``
     gradient steps on minibatches of ``cfg.batch_size``, each on :meth:`loss_of` the minibatch,
-    then the target networks' update: after every gradient step, or, with
-    ``cfg.target_update_every``, once the frames pass a multiple of it.
+    then the target networks' update (:meth:`update_targets`): after every gradient step, or,
+    with ``cfg.target_update_every``, once the frames pass a multiple of it.
 
     A subclass gives the maths. Its ``_build(env)`` sets ``self.policy`` (greedy),
     ``self.loss`` (a TorchRL loss module), ``self.optimizer`` and ``self.target_updater``, then
     calls :meth:`start_loop` with the collecting policy; it implements :meth:`loss_of`, and may
-    override :meth:`follow_schedules`, :meth:`collect_metrics`, :meth:`transitions` and
-    :meth:`clip_gradients`. Checkpoints hold the loss module (networks and targets), the
-    optimizer and the replay buffer.
+    override :meth:`follow_schedules`, :meth:`collect_metrics`, :meth:`transitions`,
+    :meth:`clip_gradients` and :meth:`update_targets`. Checkpoints hold the loss module
+    (networks and targets), the optimizer, the replay buffer and :attr:`updates`.
     """
 
     cfg: OffPolicyConfig
     state_attrs = ("loss", "optimizer", "buffer")
+    # gradient steps so far; during one, its number (from 1), which loss_of and update_targets
+    # read (e.g. TD3's delayed actor and target updates)
+    updates: int = 0
 
     def start_loop(self, env: EnvBase, collect_policy: TensorDictModuleBase) -> None:
         """The replay buffer, the target cadence and the collector (last in ``_build``)."""
@@ -64,6 +69,11 @@ class OffPolicy(EnvAlgorithm):
     def clip_gradients(self) -> None:
         """Between ``backward`` and the optimizer's step (nothing by default)."""
 
+    def update_targets(self) -> None:
+        """After each gradient step (``cfg.target_update_every`` 0): the target networks'
+        update, ``self.target_updater.step()``."""
+        self.target_updater.step()
+
     def train_step(self) -> Metrics:
         cfg = self.cfg
         batch = self.collect()
@@ -79,13 +89,14 @@ class OffPolicy(EnvAlgorithm):
         # every minibatch of the batch's updates in one draw (one sampler and storage call)
         draws = self.buffer.sample(cfg.updates_per_batch * cfg.batch_size)
         for minibatch in draws.reshape(cfg.updates_per_batch, cfg.batch_size).unbind(0):
+            self.updates += 1
             loss, scalars = self.loss_of(minibatch)
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
             self.clip_gradients()
             self.optimizer.step()
             if not cfg.target_update_every:
-                self.target_updater.step()
+                self.update_targets()
             losses.append(loss.detach())
         if losses:
             if self._target_cadence.due(self.frames):
@@ -94,6 +105,13 @@ class OffPolicy(EnvAlgorithm):
             metrics.update({key: float(value) for key, value in scalars.items()})
         self.sync_collector()
         return metrics
+
+    def state_dict(self) -> dict[str, Any]:
+        return {**super().state_dict(), "updates": self.updates}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.updates = int(state.get("updates", 0))  # a checkpoint from before it was counted
+        super().load_state_dict(state)
 
     def _restored(self) -> None:
         self.follow_schedules()
