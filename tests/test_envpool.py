@@ -16,7 +16,13 @@ from torchrl.envs.utils import check_env_specs
 from rlpipe.config import EnvConfig
 from rlpipe.envs import backends as env_backends
 from rlpipe.envs import envpool_env, make_env
-from rlpipe.envs.backends import ENVPOOL_IDS, ENVPOOL_INSTALL, backend_of, resolve_backend
+from rlpipe.envs.backends import (
+    ENVPOOL_DIFFERS,
+    ENVPOOL_IDS,
+    ENVPOOL_INSTALL,
+    backend_of,
+    resolve_backend,
+)
 from rlpipe.errors import RlpipeError
 
 needs_envpool = pytest.mark.skipif(
@@ -163,6 +169,8 @@ def test_kwargs_that_select_an_envpool_variant_are_honoured():
         (EnvConfig(id="rlpipe/CartPoleNoop-v0"), "gymnasium"),  # EnvPool has no such id
         (EnvConfig(id="CartPole-v1", kwargs={"sutton_barto_reward": True}), "gymnasium"),
         (EnvConfig(id="CartPole-v1", backend="gymnasium"), "gymnasium"),
+        (EnvConfig(id="Pendulum-v1"), "gymnasium"),  # EnvPool's steps differently
+        (EnvConfig(id="Pendulum-v1", backend="envpool"), "envpool"),  # asked for: a warning
     ],
 )
 def test_auto_picks_envpool_where_it_can_and_says_why(cfg, backend):
@@ -220,3 +228,47 @@ def test_envpool_is_installed_only_where_its_wheels_were_checked():
     assert not installed("Linux", "x86_64", "3.10")  # no 1.2.5 wheel: pip would pick 0.8
     assert not installed("Darwin", "arm64", "3.11") and not installed("Windows", "AMD64", "3.12")
     assert not installed("Linux", "aarch64", "3.12")
+
+
+def _state(env_id: str, obs: np.ndarray) -> np.ndarray:
+    """The gymnasium env's ``state`` behind an observation (classic control)."""
+    if env_id == "Pendulum-v1":
+        return np.array([np.arctan2(obs[1], obs[0]), obs[2]])
+    if env_id == "Acrobot-v1":
+        return np.array([np.arctan2(obs[1], obs[0]), np.arctan2(obs[3], obs[2]), *obs[4:]])
+    return obs.astype(np.float64)
+
+
+@needs_envpool
+@pytest.mark.parametrize(
+    "env_id",
+    ["CartPole-v1", "MountainCar-v0", "MountainCarContinuous-v0", "Acrobot-v1", "Pendulum-v1"],
+)
+def test_envpool_steps_as_gymnasium_from_the_same_state_or_is_listed(env_id):
+    """One step of EnvPool's copy and of gymnasium's from the state EnvPool was in, with the same
+    action: the same next observation, except for the ids ENVPOOL_DIFFERS lists (which must
+    really differ: a fixed EnvPool makes this fail, and the entry goes)."""
+    import envpool
+
+    pool = envpool.make(env_id, env_type="gymnasium", num_envs=8, seed=1)
+    env = gym.make(env_id).unwrapped
+    env.reset(seed=0)
+    rng, worst = np.random.default_rng(0), 0.0
+    obs, _ = pool.reset()
+    for _ in range(150):
+        space = env.action_space
+        if isinstance(space, gym.spaces.Discrete):
+            action = rng.integers(0, space.n, 8)
+        else:  # full push one way: Pendulum spins up to its speed limit
+            action = np.repeat(space.high[None], 8, 0).astype(np.float32)
+        nxt, _, terminated, truncated, _ = pool.step(action)
+        for i in np.flatnonzero(~(terminated | truncated)):
+            env.state = _state(env_id, obs[i])
+            theirs = env.step(action[i])[0]
+            worst = max(worst, float(np.abs(np.asarray(theirs) - nxt[i]).max()))
+        obs = nxt
+        done = np.flatnonzero(terminated | truncated).astype(np.int32)
+        if len(done):
+            fresh, info = pool.reset(done)
+            obs[info["env_id"]] = fresh
+    assert (worst > 1e-3) == (env_id in ENVPOOL_DIFFERS), worst

@@ -10,6 +10,7 @@ from rlpipe.config import EnvConfig
 from rlpipe.errors import RlpipeError
 
 __all__ = [
+    "ENVPOOL_DIFFERS",
     "ENVPOOL_IDS",
     "ENVPOOL_INSTALL",
     "backend_of",
@@ -34,6 +35,12 @@ ENVPOOL_IDS = (
     "MountainCarContinuous-v0",
     "Pendulum-v1",
 )
+# ids whose EnvPool twins step differently from gymnasium's (tests/test_envpool.py compares one
+# step from the same state): auto takes gymnasium for them, env.backend=envpool says so
+ENVPOOL_DIFFERS = {
+    "Pendulum-v1": "EnvPool's Pendulum-v1 moves the angle before clipping the speed at 8 (gym's v0 "
+    "order), so its episodes differ from gymnasium's wherever the pendulum spins that fast",
+}
 # gymnasium kwargs that EnvPool honours by building another id (it takes no kwargs)
 ENVPOOL_VARIANTS = {
     ("BipedalWalker-v3", "hardcore"): "BipedalWalkerHardcore-v3",
@@ -83,15 +90,18 @@ def _why_not_envpool(cfg: EnvConfig) -> str | None:
 def backend_of(cfg: EnvConfig, render_mode: str | None = None) -> str:
     """The backend that builds ``cfg``'s envs: ``gymnasium`` or ``envpool``.
 
-    ``auto`` is EnvPool where it is installed and runs the id with these kwargs, else
-    gymnasium; ``envpool`` where it cannot is one line naming why. Rendering
-    (``render_mode``: videos, ``render=human``) is always gymnasium's.
+    ``auto`` is EnvPool where it is installed and runs the id with these kwargs as gymnasium
+    does (not the ids of :data:`ENVPOOL_DIFFERS`), else gymnasium; ``envpool`` where it cannot
+    is one line naming why. Rendering (``render_mode``: videos, ``render=human``) is always
+    gymnasium's.
     """
     if render_mode is not None or cfg.backend == "gymnasium":
         return "gymnasium"
     why = _why_not_envpool(cfg)
     if why is not None and cfg.backend == "envpool":
         raise RlpipeError(f"env.backend=envpool: {why}; or set env.backend=gymnasium (or auto)")
+    if cfg.backend == "auto" and cfg.id in ENVPOOL_DIFFERS:
+        return "gymnasium"
     return "gymnasium" if why is not None else "envpool"
 
 
@@ -108,6 +118,10 @@ def resolve_backend(cfg: EnvConfig, recorded: str | None = None) -> tuple[EnvCon
     backend = backend_of(cfg)
     if cfg.backend != "auto":
         why = f"env.backend={cfg.backend}"
+        if backend == "envpool" and cfg.id in ENVPOOL_DIFFERS:
+            why += f"; warning: {ENVPOOL_DIFFERS[cfg.id]}"
+    elif cfg.id in ENVPOOL_DIFFERS and _why_not_envpool(cfg) is None:
+        why = f"auto: {ENVPOOL_DIFFERS[cfg.id]}; env.backend=envpool to use it anyway"
     elif backend == "envpool":
         why = f"auto: EnvPool {envpool_version()} runs {cfg.id}; env.backend=gymnasium to change"
     else:
