@@ -1,0 +1,78 @@
+"""The run's ``threads`` (torch's intra-op threads, process-wide) wherever a run is built: by
+``train``, by a hand-built ``Runner``, by ``load_run`` and by ``make_algorithm``."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import replace
+from functools import partial
+
+import pytest
+import torch
+
+from rlpipe.algos import DQN, DQNConfig, make_algorithm
+from rlpipe.config import Config, EnvConfig
+from rlpipe.envs import make_env
+from rlpipe.errors import RlpipeError
+from rlpipe.pipeline import load_run, train
+from rlpipe.rundir import RunDir
+from rlpipe.runner import Runner
+from rlpipe.runtime import TORCH_THREADS
+
+pytestmark = pytest.mark.skipif((os.cpu_count() or 1) < 2, reason="threads=2 needs two cores")
+ENV = EnvConfig(id="CartPole-v1", backend="gymnasium")
+ALGO = DQNConfig(frames_per_batch=16, learning_starts=16, batch_size=16)
+
+
+@pytest.fixture(autouse=True)
+def threads_restored():
+    before = torch.get_num_threads()
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.fixture(scope="module")
+def two_thread_run(tmp_path_factory):
+    run_dir = tmp_path_factory.mktemp("threads") / "run"
+    cfg = Config(env=ENV, algo=ALGO, total_frames=16, eval_episodes=1, threads=2, progress=False)
+    train(cfg, run_dir)
+    return run_dir
+
+
+def test_a_hand_built_runner_applies_the_runs_threads(tmp_path):
+    algo = DQN(partial(make_env, ENV, seed=0), ALGO)
+    eval_env = make_env(ENV, seed=1)
+    try:
+        torch.set_num_threads(2)  # what torch's default is on two cores
+        Runner(algo, eval_env, RunDir(tmp_path / "a"), total_frames=16, progress=False)
+        assert torch.get_num_threads() == 1  # the algorithm's record: threads=auto, 1 on CPU
+        cfg = algo.run_config(total_frames=16, eval_every=0, eval_episodes=1, checkpoint_every=0)
+        Runner(
+            algo, eval_env, RunDir(tmp_path / "b"), total_frames=16, config=replace(cfg, threads=2)
+        )
+        assert torch.get_num_threads() == 2  # the config's, which config.yaml records
+        Runner(
+            algo, eval_env, RunDir(tmp_path / "c"), total_frames=16, config=replace(cfg, threads=0)
+        )
+        assert torch.get_num_threads() == TORCH_THREADS  # 0: torch's default
+    finally:
+        algo.close()
+        eval_env.close()
+
+
+def test_load_run_applies_the_runs_threads(two_thread_run):
+    torch.set_num_threads(1)
+    loaded = load_run(two_thread_run)
+    loaded.algo.close()
+    assert torch.get_num_threads() == 2
+    assert loaded.cfg.threads == 2
+
+
+def test_make_algorithm_applies_threads_and_checks_them():
+    torch.set_num_threads(2)
+    make_algorithm(partial(make_env, ENV, seed=0), ALGO).close()
+    assert torch.get_num_threads() == 1  # auto
+    make_algorithm(partial(make_env, ENV, seed=0), ALGO, threads=2).close()
+    assert torch.get_num_threads() == 2
+    with pytest.raises(RlpipeError, match="threads must be auto or a number >= 0"):
+        make_algorithm(partial(make_env, ENV, seed=0), ALGO, threads="many")
