@@ -3,14 +3,19 @@
 
 from __future__ import annotations
 
+import contextlib
+import importlib
 import os
+import sys
 from dataclasses import replace
 from functools import partial
+from pathlib import Path
 
 import pytest
 import torch
 
 from rlpipe.algos import DQN, DQNConfig, make_algorithm
+from rlpipe.cli import compose_run
 from rlpipe.config import Config, EnvConfig
 from rlpipe.envs import make_env
 from rlpipe.errors import RlpipeError
@@ -76,3 +81,41 @@ def test_make_algorithm_applies_threads_and_checks_them():
     assert torch.get_num_threads() == 2
     with pytest.raises(RlpipeError, match="threads must be auto or a number >= 0"):
         make_algorithm(partial(make_env, ENV, seed=0), ALGO, threads="many")
+
+
+@pytest.fixture
+def handbuilt(monkeypatch):
+    """benchmarks/handbuilt.py, imported."""
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    return importlib.import_module("handbuilt")
+
+
+def test_the_handbuilt_benchmark_times_each_way_of_building(handbuilt, tmp_path):
+    """Each hand-built variant trains the preset (load_run's: on from a finished run) with the
+    threads it stands for."""
+    parent = tmp_path / "parent"
+    train(compose_run(handbuilt.PRESET, "total_frames=32", *handbuilt.QUIET), parent)
+    for variant, threads in (("handbuilt", 1), ("load_run", 1), ("before", TORCH_THREADS)):
+        assert handbuilt.measure(variant, 32, parent) > 0
+        assert torch.get_num_threads() == threads
+
+
+def test_the_handbuilt_benchmark_table(handbuilt, tmp_path, monkeypatch):
+    """One row per condition and variant: the median seconds and the median ratio of rounds."""
+    seconds = {"cli": [2.0, 4.0], "handbuilt": [2.2, 4.0], "load_run": [3.0, 4.0], "before": [8, 8]}
+    rounds = {variant: iter(values) for variant, values in seconds.items()}
+    monkeypatch.setattr(handbuilt, "command_line", lambda frames, run_dir: 0.0)
+    monkeypatch.setattr(handbuilt, "busy", lambda on: contextlib.nullcontext())
+    monkeypatch.setattr(handbuilt, "run_variant", lambda variant, *_: next(rounds[variant]))
+    out = tmp_path / "BENCH.md"
+    argv = ["handbuilt.py", "--rounds", "2", "--conditions", "alone", "--append", str(out)]
+    monkeypatch.setattr(sys, "argv", argv)
+    handbuilt.main()
+    rows = [line for line in out.read_text().splitlines() if line.startswith("| alone |")]
+    assert rows == [
+        "| alone | command line | 3.0 | 2.0, 4.0 | 1.00 |",
+        "| alone | hand-built Runner | 3.1 | 2.2, 4.0 | 1.05 |",
+        "| alone | load_run + Runner | 3.5 | 3.0, 4.0 | 1.25 |",
+        "| alone | hand-built Runner, torch's default threads (as before) | 8.0 | 8.0, 8.0 "
+        "| 3.00 |",
+    ]
