@@ -47,7 +47,8 @@ def train(
     checked and built, and the checkpoint applied, before anything in the dir is written
     (:meth:`RunDir.open`, then :meth:`RunDir.session`), so a bad config or a mismatched
     checkpoint changes nothing. ``on_start(run_dir)`` runs then (the command line records
-    Hydra's files with it).
+    Hydra's files with it). ``cfg.init_from``: a new run that starts from that run's checkpoint
+    (:mod:`rlpipe.lineage`); a run continued keeps its parent and its schedules' frames.
 
     ``network``: your module in place of the algorithm's default network (a Python object:
     ``config.yaml`` cannot hold it, so pass it again to resume or to :func:`load_run`;
