@@ -12,6 +12,7 @@ or a value of the wrong type fails at start-up naming the key, and value checks 
 from __future__ import annotations
 
 import os
+import re
 from collections.abc import Iterable
 from dataclasses import dataclass, field, fields, is_dataclass, replace
 from pathlib import Path
@@ -79,6 +80,10 @@ class AlgoConfig:
     # keys that do not decide the results (budgets, where rollouts run): left out of the
     # fingerprint that ties a run dir to one run (fingerprint below), like RUN_KEYS
     not_fingerprinted: ClassVar[tuple[str, ...]] = ()
+    # keys that shape the networks: a run fine-tuned from another (init_from) keeps its values
+    architecture: ClassVar[tuple[str, ...]] = ("network",)
+    # keys that shape the replay buffer and what it holds: init_buffer keeps the parent's values
+    buffer_keys: ClassVar[tuple[str, ...]] = ()
 
     name: str = ""
     total_frames: int | None = None  # None: the algorithm's own budget (epochs, iterations)
@@ -164,10 +169,25 @@ class Config:
     # OpenMP threads spin against every other process), N, or 0 (torch's default: one per core)
     threads: Any = "auto"
     resume: str | None = None  # a run dir to continue from its last good checkpoint
+    # a NEW run from a trained run's weights and observation normaliser:
+    # <run dir>[:<frames>|best|<checkpoint file>] (newest by default; config.yaml pins the file)
+    init_from: str | None = None
+    init_optimizer: bool = False  # with init_from: also its optimizer state (Adam's moments)
+    init_buffer: bool = False  # with init_from: also its replay buffer (DQN, SAC, MBRL)
 
     def __post_init__(self) -> None:
         check_run_keys(self, "")
         check_rules(self, "")
+        check(
+            self.init_from is None or bool(split_init_from(self.init_from)[0]),
+            f"init_from must be a run dir, optionally with :<frames>, :best or :<checkpoint "
+            f"file>, got {self.init_from!r}",
+        )
+        for key in ("init_optimizer", "init_buffer"):
+            check(
+                not getattr(self, key) or self.init_from is not None,
+                f"{key}=true takes a part of the run init_from names; add init_from=<run dir>",
+            )
         cores = os.cpu_count() or 1
         check(
             self.threads == "auto" or (type(self.threads) is int and 0 <= self.threads <= cores),
@@ -202,6 +222,19 @@ NOT_FINGERPRINTED = (
     "resume",
     "logger",
 )
+
+
+# what may follow init_from's run dir after a colon: a frame count, best, or a checkpoint's name
+CHECKPOINT_NAME = re.compile(r"\d+|best|(ckpt|best)_\d+\.pt")
+
+
+def split_init_from(spec: str) -> tuple[str, str | None]:
+    """``init_from``'s ``(run dir, checkpoint)``: ``"runs/a:4096"`` -> ``("runs/a", "4096")``;
+    ``"runs/a"`` -> ``("runs/a", None)`` (the newest)."""
+    where, colon, name = spec.rpartition(":")
+    if colon and where and CHECKPOINT_NAME.fullmatch(name):
+        return where, name
+    return spec, None
 
 
 def config_to_dict(cfg: Config) -> dict[str, Any]:
@@ -254,8 +287,9 @@ def config_from_dict(data: dict[str, Any]) -> Config:
 
 def _with_legacy_env(data: dict[str, Any]) -> dict[str, Any]:
     """A copy of a config's containers; an ``env`` without ``backend`` (written before there
-    was a choice) ran on gymnasium."""
-    data = dict(data)
+    was a choice) ran on gymnasium; a config without ``init_from`` (written before there was
+    one) started from scratch."""
+    data = {"init_from": None, "init_optimizer": False, "init_buffer": False, **data}
     if isinstance(data.get("env"), dict):
         data["env"] = {"backend": "gymnasium", **data["env"]}
     return data

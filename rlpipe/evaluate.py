@@ -1,15 +1,15 @@
 """``python -m rlpipe.evaluate run_dir=... [episodes=100] [video=true] [policy=...]``.
 
 Loads a run's config (``run_dir=latest``: the newest run under ``outputs/``) and its newest
-checkpoint (``checkpoint=best``: the best evaluation's; ``checkpoint=<file>``), runs greedy
-episodes (``render=human``: live in a window), prints mean ± std, min, max and the mean episode
-length, and writes a JSON summary (plus, with ``video=true``, an mp4 of ``video_episodes`` more
-greedy episodes). ``policy=random``, ``policy=naive`` (the notebook's hand-written BipedalWalker
-controller) and ``policy=heuristic`` (a hand-written BipedalWalker gait) are baselines on the
-run's env, or on any ``env=<option>`` without a run dir (their summary goes to
-``outputs/evaluation/<env>-<policy>.json``). The output location is checked before any episode
-runs. A run dir's ``env.id`` of the form ``module:Id`` (which imports ``module``) is refused
-unless ``allow_env_import=true``: run dirs are data, not code.
+checkpoint (``checkpoint=best``: the best evaluation's; ``checkpoint=<frames>`` or ``<file>``),
+runs greedy episodes (``render=human``: live in a window), prints mean ± std, min, max and the
+mean episode length, and writes a JSON summary (plus, with ``video=true``, an mp4 of
+``video_episodes`` more greedy episodes). ``policy=random``, ``policy=naive`` (the notebook's
+hand-written BipedalWalker controller) and ``policy=heuristic`` (a hand-written BipedalWalker
+gait) are baselines on the run's env, or on any ``env=<option>`` without a run dir (their
+summary goes to ``outputs/evaluation/<env>-<policy>.json``). The output location is checked
+before any episode runs. A run dir's ``env.id`` of the form ``module:Id`` (which imports
+``module``) is refused unless ``allow_env_import=true``: run dirs are data, not code.
 """
 
 from __future__ import annotations
@@ -56,7 +56,8 @@ class EvaluateConfig:
 
     # a training run's directory (its env and checkpoints); latest: the newest under outputs/
     run_dir: str | None = None
-    # a file in <run_dir>/checkpoints; best: the best evaluation's; null: the newest
+    # a file in <run_dir>/checkpoints, or its frames (4096); best: the best evaluation's; null:
+    # the newest
     checkpoint: str | None = None
     policy: str = "trained"  # trained | random | naive | heuristic
     episodes: int = 10

@@ -18,7 +18,7 @@ from rlpipe.errors import check
 from rlpipe.files import write_atomic
 from rlpipe.metrics import EVAL_METRIC
 from rlpipe.rundir import RunDir
-from rlpipe.runs import Group
+from rlpipe.runs import Group, history
 from rlpipe.stats import AGGREGATES, bootstrap_band
 
 WINDOW = 100  # episodes in the training-return moving average (as the DQN notebook plotted)
@@ -112,11 +112,18 @@ def _label(ax: Axes, title: str) -> None:
 # ---- many runs: seeds grouped, mean/IQM line with a bootstrap band -------------------------
 
 
-def aligned(runs: Sequence[Path], metric: str) -> tuple[np.ndarray, np.ndarray]:
-    """``(frames, values[run, frame])`` on the frames of the shortest run (interpolated)."""
-    curves = [RunDir(run).metric(metric) for run in runs]
-    grid = min((frames for frames, _ in curves), key=lambda f: f[-1])
-    return grid, np.stack([np.interp(grid, frames, values) for frames, values in curves])
+def aligned(
+    runs: Sequence[Path], metric: str, *, parents: bool = False
+) -> tuple[np.ndarray, np.ndarray, list[int]]:
+    """``(frames, values[run, frame], starts)`` on the frames of the shortest run
+    (interpolated); ``parents``: each run after the runs it was fine-tuned from
+    (:func:`~rlpipe.runs.history`), ``starts`` the frames where fine-tuning began."""
+    curves = [
+        history(run, metric) if parents else (*RunDir(run).metric(metric), []) for run in runs
+    ]
+    grid = min((frames for frames, _, _ in curves), key=lambda f: f[-1])
+    values = np.stack([np.interp(grid, frames, values) for frames, values, _ in curves])
+    return grid, values, sorted({start for *_, starts in curves for start in starts})
 
 
 # what a metric is, for titles (any other metric is named by its key)
@@ -133,11 +140,14 @@ def plot_groups(
     aggregate: str = "mean",
     svg: bool = False,
     title: str | None = None,
+    parents: bool = True,
 ) -> list[Path]:
     """Draw one line per group (``aggregate`` over its seeds) with a 95% bootstrap band.
 
-    One panel per env when the groups span several, each titled by its env and algorithm(s)."""
-    fig = groups_figure(groups, metric=metric, aggregate=aggregate, title=title)
+    One panel per env when the groups span several, each titled by its env and algorithm(s).
+    ``parents``: a fine-tuned run's line starts with the runs it began from (``init_from``), a
+    dotted line where fine-tuning began."""
+    fig = groups_figure(groups, metric=metric, aggregate=aggregate, title=title, parents=parents)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     save_figure(fig, path)
@@ -149,7 +159,12 @@ def plot_groups(
 
 
 def groups_figure(
-    groups: Sequence[Group], *, metric: str, aggregate: str, title: str | None = None
+    groups: Sequence[Group],
+    *,
+    metric: str,
+    aggregate: str,
+    title: str | None = None,
+    parents: bool = True,
 ) -> Figure:
     """The figure :func:`plot_groups` saves."""
     check(aggregate in AGGREGATES, f"agg must be one of {', '.join(AGGREGATES)}; got {aggregate!r}")
@@ -163,7 +178,7 @@ def groups_figure(
     axes = np.atleast_1d(fig.subplots(rows, columns, squeeze=False).ravel())
     for ax, (env_id, members) in zip(axes, panels.items()):
         for i, group, _ in members:
-            frames, values = aligned(group.runs, metric)
+            frames, values, starts = aligned(group.runs, metric, parents=parents)
             line = AGGREGATES[aggregate](values)
             n = len(group.runs)
             label = _legend(group.label, several_envs=len(panels) > 1)
@@ -180,6 +195,14 @@ def groups_figure(
             if n > 1:
                 low, high = bootstrap_band(values, aggregate)
                 ax.fill_between(frames, low, high, color=f"C{i}", alpha=0.2)
+            for start in starts:
+                ax.axvline(
+                    start,
+                    color=f"C{i}",
+                    ls=":",
+                    lw=1.5,
+                    label=f"fine-tuning began ({start:,} frames)",
+                )
         algos = sorted({algo for _, _, algo in members})
         ax.set_title(f"{env_id} · {', '.join(algos)}")
         ax.set_xlabel("frames")

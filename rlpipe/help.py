@@ -33,6 +33,9 @@ KEYS = {
     "video": "true: an mp4 at every evaluation; N: every N frames (video extra)",
     "threads": "torch intra-op threads: auto (1 on CPU), N, or 0 (torch's default)",
     "resume": "a run dir to continue from its newest intact checkpoint",
+    "init_from": "a NEW run from a run dir's weights: <dir>[:<frames>|best] (newest)",
+    "init_optimizer": "with init_from: also its optimizer state",
+    "init_buffer": "with init_from: also its replay buffer (DQN, SAC, MBRL)",
 }
 ENTRY_POINTS = {
     "python -m rlpipe.evaluate run_dir=<dir>": "evaluate a trained run (or policy=random)",

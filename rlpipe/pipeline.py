@@ -20,12 +20,13 @@ from rlpipe.console import say
 from rlpipe.envs import make_env
 from rlpipe.envs.backends import resolve_backend
 from rlpipe.episodes import eval_envs
+from rlpipe.lineage import continued, extension_line, init_parts, read_parent, start_line
 from rlpipe.loggers import make_logger, run_card
 from rlpipe.models import object_record
 from rlpipe.outcomes import RunResult
 from rlpipe.rundir import RunDir
 from rlpipe.runner import Runner
-from rlpipe.runtime import env_threads, resolve_device, seed_everything, set_threads
+from rlpipe.runtime import env_threads, resolve_device, seed_everything
 
 SEED_RANGE = 2**32  # environment seeds derived from cfg.seed wrap around at numpy's limit
 
@@ -46,7 +47,8 @@ def train(
     checked and built, and the checkpoint applied, before anything in the dir is written
     (:meth:`RunDir.open`, then :meth:`RunDir.session`), so a bad config or a mismatched
     checkpoint changes nothing. ``on_start(run_dir)`` runs then (the command line records
-    Hydra's files with it).
+    Hydra's files with it). ``cfg.init_from``: a new run that starts from that run's checkpoint
+    (:mod:`rlpipe.lineage`); a run continued keeps its parent and its schedules' frames.
 
     ``network``: your module in place of the algorithm's default network (a Python object:
     ``config.yaml`` cannot hold it, so pass it again to resume or to :func:`load_run`;
@@ -57,14 +59,18 @@ def train(
         cfg = replace(cfg, algo=replace(cfg.algo, network=object_record(network)))
     device = resolve_device(cfg.device)
     run = RunDir(cfg.resume or run_dir)
+    recorded = run.read_config(allow_code=True) if run.is_run() else None
     # auto becomes the backend used (config.yaml records it); a run continued keeps its own
-    recorded = run.read_config(allow_code=True).env.backend if run.is_run() else None
-    env_cfg, backend_line = resolve_backend(cfg.env, recorded)
+    env_cfg, backend_line = resolve_backend(cfg.env, recorded and recorded.env.backend)
     cfg = replace(cfg, env=env_cfg)
+    if recorded is not None:  # and how it began: its parent, its schedules' frames
+        cfg = continued(cfg, recorded, run.path)
     start = run.open(cfg, required=bool(cfg.resume))
+    parent = read_parent(cfg) if cfg.init_from and start is None else None
+    if parent is not None:
+        cfg = replace(cfg, init_from=parent.spec)  # config.yaml pins its checkpoint
     frames = 0 if start is None else start.frames
     seed_everything(cfg.seed)
-    set_threads(cfg.threads, device)
     eval_seed = (cfg.seed + 10_000) % SEED_RANGE  # every evaluation: these episodes' starts
     envs = partial(make_env, cfg.env, threads=env_threads(cfg.threads))
     with ExitStack() as stack:
@@ -75,6 +81,7 @@ def train(
             cfg.algo,
             device=device,
             network=network,
+            threads=cfg.threads,  # torch's, process-wide (the Runner applies the same)
         )
         stack.callback(algo.close)
         runner = Runner(
@@ -92,10 +99,18 @@ def train(
         if start is not None:
             with start.applying():
                 runner.restore(start.state)
+        elif parent is not None:
+            with parent.applying(cfg):
+                algo.start_from(parent.checkpoint.state["algo"], init_parts(cfg), parent.cfg.algo)
         with run.session(cfg, frames, cfg.keep_checkpoints):  # checked: from here on it is written
             say(f"rlpipe: {backend_line}")
+            if parent is not None:
+                say(start_line(parent, cfg))
             if start is not None and not runner.finished:  # a finished run says so itself
                 say(f"rlpipe: resuming {run.path} from {start.path.name} at {frames:,} frames")
+                extended = extension_line(cfg)
+                if extended is not None:
+                    say(extended)
             if on_start is not None:
                 on_start(run)
             runner.logger = make_logger(cfg.logger, run.path, run_card(cfg, run.overrides()))
@@ -131,15 +146,18 @@ def load_run(
     trained with in place of the default (a Python object, which ``config.yaml`` cannot hold; a
     ``algo.network`` spec is rebuilt from the config). The caller owns ``LoadedRun.algo`` and
     must ``close()`` it. ``backend``: the env backend to rebuild it on (``env.backend``'s
-    choices; None: the one the run recorded), which ``LoadedRun.cfg`` then names.
+    choices; None: the one the run recorded), which ``LoadedRun.cfg`` then names. The run's
+    ``threads`` set torch's intra-op threads, process-wide, as ``train`` does.
     """
     run = RunDir(run_dir)
     cfg = run.read_config(allow_code=allow_env_import)
     if backend is not None:
         cfg = replace(cfg, env=replace(cfg.env, backend=backend))
     found = run.read_checkpoint(checkpoint)
-    factory = partial(make_env, cfg.env, num_envs=num_envs, seed=cfg.seed)
-    algo = make_algorithm(factory, cfg.algo, device=device, network=network)
+    factory = partial(
+        make_env, cfg.env, num_envs=num_envs, seed=cfg.seed, threads=env_threads(cfg.threads)
+    )
+    algo = make_algorithm(factory, cfg.algo, device=device, network=network, threads=cfg.threads)
     try:
         with found.applying():
             algo.load_state_dict(found.state["algo"])

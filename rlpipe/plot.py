@@ -3,10 +3,12 @@
 Draws learning curves of any set of run dirs or multirun sweep dirs: runs that differ only by
 seed form a group, drawn as the mean (``agg=mean``) or interquartile mean (``agg=iqm``) over
 its seeds with a 95% bootstrap confidence band (a group of one seed: no band); groups are
-labelled by the overrides that set them apart. Writes ``curves.png`` beside the data (in DIR, or
-in the directory holding every DIR) unless ``out=`` says where, and prints its path (and the
-SVG's with ``svg=true``). An argument naming an existing path is a directory even if it holds
-``=`` (``outputs/lr=0.1``).
+labelled by the overrides that set them apart. A run fine-tuned from another (``init_from``)
+is drawn after the run it began from, its frames counted on from that checkpoint's, a dotted
+line where it began (``parent=false``: the run alone, from 0). Writes ``curves.png`` beside
+the data (in DIR, or in the directory holding every DIR) unless ``out=`` says where, and prints
+its path (and the SVG's with ``svg=true``). An argument naming an existing path is a directory
+even if it holds ``=`` (``outputs/lr=0.1``).
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ from rlpipe.metrics import EVAL_METRIC
 from rlpipe.runs import find_runs, group_runs
 from rlpipe.stats import AGGREGATES
 
-OPTIONS = {"agg": "mean", "svg": "false", "metric": EVAL_METRIC, "out": None}
+OPTIONS = {"agg": "mean", "svg": "false", "metric": EVAL_METRIC, "out": None, "parent": "true"}
 BOOLEANS = {"true": True, "false": False}
 
 
@@ -47,7 +49,8 @@ def parse_args(argv: Sequence[str]) -> tuple[list[str], dict[str, str | None]]:
         options["agg"] in AGGREGATES,
         f"agg must be one of {', '.join(AGGREGATES)}; got {options['agg']!r}",
     )
-    check(options["svg"] in BOOLEANS, f"svg must be true or false; got {options['svg']!r}")
+    for key in ("svg", "parent"):
+        check(options[key] in BOOLEANS, f"{key} must be true or false; got {options[key]!r}")
     return dirs, options
 
 
@@ -74,6 +77,7 @@ def _plot(args: list[str]) -> None:
         metric=options["metric"],
         aggregate=options["agg"],
         svg=BOOLEANS[options["svg"]],
+        parents=BOOLEANS[options["parent"]],
     )
     print(f"rlpipe: {len(groups)} group(s) from {len(runs)} run(s):")
     for group in groups:

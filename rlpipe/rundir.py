@@ -25,7 +25,14 @@ from typing import TYPE_CHECKING, Any
 from omegaconf import DictConfig, OmegaConf
 
 from rlpipe.checkpoint import CorruptCheckpoint, fitting, load_checkpoint, loads, save_checkpoint
-from rlpipe.config import Config, config_from_yaml, config_to_dict, fingerprint, fingerprint_diff
+from rlpipe.config import (
+    Config,
+    config_from_yaml,
+    config_to_dict,
+    fingerprint,
+    fingerprint_diff,
+    split_init_from,
+)
 from rlpipe.console import warn
 from rlpipe.errors import RlpipeError, RunDirConflict, check
 from rlpipe.files import TEMP_SUFFIX, NotOwnFile, read_regular, strange, write_atomic
@@ -116,8 +123,11 @@ class RunDir(RunLayout):
 
     def read_checkpoint(self, name: str | None = None) -> Checkpoint:
         """The newest checkpoint that loads (``name`` None), the best evaluation's (``"best"``),
-        or ``checkpoints/<name>``."""
+        the one at a frame count (``"4096"``: ``ckpt_000000004096.pt``), or
+        ``checkpoints/<name>``."""
         self.check_layout()
+        if name is not None and name.isdigit():
+            name = self._at_frames(int(name))
         if name in (None, "best"):
             self._own("best_*.pt" if name else "ckpt_*.pt", say=True)
         if name == "best":
@@ -138,6 +148,28 @@ class RunDir(RunLayout):
         path = self.checkpoints_dir / name if not Path(name).is_absolute() else Path(name)
         check(os.path.lexists(path), f"checkpoint {path} does not exist")
         return Checkpoint(path, load_checkpoint(path))
+
+    def _at_frames(self, frames: int) -> str:
+        """The name of the resume point at ``frames``; one line listing those there if none."""
+        name, found = f"ckpt_{frames:012d}.pt", self.checkpoints()
+        there = [f"{frames_of(path):,}" for path in found]
+        check(
+            name in [path.name for path in found],
+            f"{self.path} has no checkpoint at {frames:,} frames (checkpoints/{name}); it has "
+            f"{', '.join(there) or 'none'} (keep_checkpoints keeps the newest), or best",
+        )
+        return name
+
+    def parent(self) -> tuple[Path, int] | None:
+        """The run this one was fine-tuned from (``init_from`` in ``config.yaml``) and the
+        frames of the checkpoint it started from; None for a run started from scratch."""
+        spec = OmegaConf.select(self.read_yaml(self.CONFIG) or OmegaConf.create(), "init_from")
+        if not spec:
+            return None
+        where, name = split_init_from(str(spec))
+        if name is None or not name.endswith(".pt"):  # not pinned: not written by train
+            return None
+        return Path(where), frames_of(Path(name))
 
     def metric(self, name: str) -> tuple[np.ndarray, np.ndarray]:
         """``(frames, values)`` of one logged metric; empty arrays when the run has none (or

@@ -1,5 +1,6 @@
-"""Many run dirs at once: the runs below some directories (a sweep), the newest one, and runs
-grouped by the overrides that made them (the seeds of one setting together)."""
+"""Many run dirs at once: the runs below some directories (a sweep), the newest one, runs
+grouped by the overrides that made them (the seeds of one setting together), and a fine-tuned
+run's history through the runs it began from."""
 
 from __future__ import annotations
 
@@ -7,11 +8,12 @@ import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TypeVar
+from typing import TYPE_CHECKING, TypeVar
 
 from omegaconf import OmegaConf
 
 from rlpipe.config import flatten
+from rlpipe.console import warn
 from rlpipe.errors import check
 from rlpipe.metrics import EVAL_METRIC, parse_rows, read_metric_bytes
 from rlpipe.rundir import RunDir
@@ -20,6 +22,10 @@ from rlpipe.rundir import RunDir
 # run is the run it continues
 NOT_GROUPED = ("seed", "resume")
 T = TypeVar("T")
+MAX_GENERATIONS = 100  # init_from links followed at most (a hand-edited loop ends there)
+
+if TYPE_CHECKING:
+    import numpy as np
 
 
 @dataclass
@@ -106,3 +112,37 @@ def group_runs(runs: Sequence[Path]) -> list[Group]:
 
     The groups and labels of :func:`group_by_overrides`, over the overrides that made each run."""
     return [Group(label, members) for label, members in group_by_overrides(runs, run_overrides)]
+
+
+def generations(run: str | Path) -> list[tuple[Path, int | None]]:
+    """``run`` and the runs it was fine-tuned from (``init_from``), oldest first, each with the
+    frames of its checkpoint that the next one began from (``run``'s: None). A parent that is
+    no longer there ends the chain, with a warning."""
+    chain: list[tuple[Path, int | None]] = [(Path(run), None)]
+    while len(chain) <= MAX_GENERATIONS:
+        child = chain[0][0]
+        parent = RunDir(child).parent() if child.is_dir() else None
+        if parent is None:
+            break
+        chain.insert(0, parent)
+        if not parent[0].is_dir():
+            warn(f"{parent[0]}, the run {child} began from, is not there: its curve is left out")
+    return chain
+
+
+def history(run: str | Path, metric: str) -> tuple[np.ndarray, np.ndarray, list[int]]:
+    """``(frames, values, starts)`` of ``metric`` over ``run``'s :func:`generations`: each
+    parent's rows up to the checkpoint its child began from, then the child's, their frames
+    counted on from there; ``starts``: the frames where each child began."""
+    import numpy as np  # here: the command line reads no metric and loads no numpy
+
+    frames, values, starts, offset = [], [], [], 0
+    for path, cut in generations(run):
+        at, value = RunDir(path).metric(metric)
+        kept = at <= cut if cut is not None else np.ones(len(at), dtype=bool)
+        frames.append(at[kept] + offset)
+        values.append(value[kept])
+        if cut is not None:
+            offset += cut
+            starts.append(offset)
+    return np.concatenate(frames), np.concatenate(values), starts

@@ -9,7 +9,10 @@ from typing import Any
 import numpy as np
 import torch
 
-from rlpipe.errors import RlpipeError
+from rlpipe.errors import RlpipeError, check
+
+# torch's own intra-op threads (one per core) as rlpipe found them: what ``threads=0`` restores
+TORCH_THREADS = torch.get_num_threads()
 
 
 def resolve_device(name: str) -> torch.device:
@@ -33,13 +36,17 @@ def seed_everything(seed: int) -> None:
 
 
 def set_threads(threads: int | str, device: torch.device) -> None:
-    """Set torch's intra-op threads: ``"auto"`` is 1 on a CPU device (the networks here are
-    small: more threads only contend with other processes) and torch's default elsewhere;
-    ``0`` leaves torch's default (one per core); ``N`` uses N."""
+    """Set torch's intra-op threads, process-wide: ``"auto"`` is 1 on a CPU device (the networks
+    here are small: more threads only contend with other processes) and torch's default
+    elsewhere; ``0`` is torch's default (:data:`TORCH_THREADS`, one per core); ``N`` uses N.
+    Building an algorithm, a :class:`~rlpipe.Runner` and ``load_run`` call it."""
+    check(
+        threads == "auto" or (type(threads) is int and threads >= 0),
+        f"threads must be auto or a number >= 0 (0: torch's default), got {threads!r}",
+    )
     if threads == "auto":
         threads = 1 if device.type == "cpu" else 0
-    if threads:
-        torch.set_num_threads(threads)
+    torch.set_num_threads(threads or TORCH_THREADS)
 
 
 def env_threads(threads: int | str) -> int:

@@ -55,7 +55,8 @@ def test_a_run_dir_with_spaces_or_letters_beyond_ascii(rlpipe_cli, tmp_path, nam
 
 
 def test_the_runs_console_lines_are_in_its_log(tmp_path, run_copy):
-    """rlpipe.log holds the resume notice, the warnings and the summary line the console shows."""
+    """rlpipe.log holds the resume notice, the extension's line, the warnings and the summary
+    line the console shows."""
     from conftest import BASE, run_module
 
     with open(run_copy / "metrics" / "scalars" / "eval" / "return_mean.csv", "ab") as f:
@@ -69,7 +70,7 @@ def test_the_runs_console_lines_are_in_its_log(tmp_path, run_copy):
     ]
     # stdout's and stderr's lines, each in order: the warning on stderr, the others on stdout
     kinds = sorted(line.split()[1] for line in console)
-    assert kinds == ["env", "final", "resuming", "warning:"], console
+    assert kinds == ["300", "env", "final", "resuming", "warning:"], console  # 300: extended
     log = (run_copy / "rlpipe.log").read_text()
     assert log.startswith(before)  # appended to
     for line in console:

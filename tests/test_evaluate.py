@@ -68,6 +68,8 @@ def test_evaluate_trained_run(run_dir: Path, tmp_path: Path) -> None:
     assert summary["return_min"] <= summary["return_mean"] <= summary["return_max"]
     assert all(r >= 1 for r in summary["returns"])
     assert summary["video"] is None
+    at = run_module("rlpipe.evaluate", f"run_dir={run_dir}", "checkpoint=200", cwd=tmp_path)
+    assert at.returncode == 0 and "trained (ckpt_000000000200)" in at.stdout, at.stderr
 
 
 @pytest.mark.parametrize(
@@ -152,6 +154,10 @@ def test_latest_run_best_checkpoint_live_window_and_a_longer_video(tmp_path: Pat
         (["run_dir=RUN", "colour=red"], "colour"),
         (["run_dir=RUN", "+colour=red"], "unknown key 'colour'"),
         (["run_dir=RUN", "episodes=0"], "episodes must be >= 1"),
+        (
+            ["run_dir=RUN", "checkpoint=150"],
+            "has no checkpoint at 150 frames (checkpoints/ckpt_000000000150.pt); it has 200",
+        ),
         (["policy=best", "env=cartpole"], "policy must be one of"),
         (["episodes=3"], "policy=trained needs run_dir"),
         (["policy=random"], "pass run_dir="),

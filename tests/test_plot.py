@@ -117,7 +117,8 @@ def test_titles_and_bands_say_only_what_is_there(runs: list[Path], tmp_path: Pat
         (["EMPTY/missing"], "is not a directory"),
         (["RUN", "agg=median"], "agg must be one of"),
         (["RUN", "colour=red"], "unknown option 'colour'"),
-        (["EMPTY/lr=0.1"], "lr=0.1 is not a directory (nor an option: agg, svg, metric, out)"),
+        (["EMPTY/lr=0.1"], "lr=0.1 is not a directory (nor an option: agg, svg, metric, out, "),
+        (["RUN", "parent=maybe"], "parent must be true or false; got 'maybe'"),
         ([], "pass at least one run dir"),
     ],
 )
@@ -266,3 +267,49 @@ def test_a_figure_a_reader_understands(
     assert labels == ["algo.lr=0.001 (mean of 2)"]  # its panel (CartPole); the other has its own
     monkeypatch.chdir(tmp_path)
     assert _title(car[0]) == "dqn on MountainCar-v0: car0"
+
+
+def _synthetic_run(run: Path, rows: dict[int, float], init_from: str | None = None) -> Path:
+    """A run dir with an eval curve and a config.yaml naming its parent (as train pins it)."""
+    scalars = run / "metrics" / "scalars" / "eval"
+    scalars.mkdir(parents=True)
+    (scalars / "return_mean.csv").write_text("".join(f"{f},{v}\n" for f, v in rows.items()))
+    parent = f"init_from: {init_from}\n" if init_from else ""
+    (run / "config.yaml").write_text(f"env:\n  id: CartPole-v1\nalgo:\n  name: dqn\n{parent}")
+    return run
+
+
+def test_plot_draws_a_fine_tuned_run_after_its_parents(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The parent's rows up to the checkpoint the child began from, then the child's, counted
+    on from there (a grandparent too); parent=false: the child alone, from 0."""
+    from rlpipe.figures import groups_figure
+    from rlpipe.runs import Group, history
+
+    root = _synthetic_run(tmp_path / "root", {500: 5.0, 1000: 10.0})
+    pinned = f"{root}:ckpt_000000000500.pt"
+    parent = _synthetic_run(tmp_path / "parent", {1000: 1.0, 2000: 2.0, 3000: 3.0}, pinned)
+    child = _synthetic_run(
+        tmp_path / "child", {1000: 30.0, 2000: 40.0}, f"{parent}:ckpt_000000002000.pt"
+    )
+    frames, values, starts = history(child, "eval/return_mean")
+    assert frames.tolist() == [500, 1500, 2500, 3500, 4500]
+    assert values.tolist() == [5.0, 1.0, 2.0, 30.0, 40.0]
+    assert starts == [500, 2500]
+    fig = groups_figure([Group("child", [child])], metric="eval/return_mean", aggregate="mean")
+    (ax,) = fig.axes
+    assert ax.lines[0].get_xdata().tolist() == [500, 1500, 2500, 3500, 4500]
+    assert [line.get_xdata()[0] for line in ax.lines[1:]] == [500, 2500]  # where each began
+    main([str(child)])
+    assert_picture(child / "curves.png")
+    alone = groups_figure(
+        [Group("child", [child])], metric="eval/return_mean", aggregate="mean", parents=False
+    )
+    assert [line.get_xdata().tolist() for line in alone.axes[0].lines] == [[1000, 2000]]
+    main([str(child), "parent=false", f"out={tmp_path / 'alone.png'}"])
+    assert_picture(tmp_path / "alone.png")
+    shutil.rmtree(root)  # a parent no longer there: left out, with a warning; still counted on
+    frames, _, _ = history(child, "eval/return_mean")
+    assert frames.tolist() == [1500, 2500, 3500, 4500]
+    assert f"{root}, the run {parent} began from, is not there" in capsys.readouterr().err

@@ -46,9 +46,17 @@ def make_algorithm(
     *,
     device: str | torch.device = "cpu",
     network: nn.Module | None = None,
+    threads: int | str = "auto",
 ) -> Algorithm:
     """Build the algorithm named by ``cfg.name`` on envs from ``env_factory``.
 
-    ``network``: your module in place of the algorithm's default network."""
+    ``network``: your module in place of the algorithm's default network. ``threads``: torch's
+    intra-op threads, set process-wide first (a run's ``threads`` key: ``"auto"`` is 1 on a CPU
+    device, ``0`` torch's default, ``N`` N)."""
+    import torch  # with the algorithm: importing this package loads no torch
+
+    from rlpipe.runtime import set_threads
+
+    set_threads(threads, torch.device(device))
     extra = {} if network is None else {"network": network}
     return ALGORITHMS.builder(cfg.name)(env_factory, cfg, device=device, **extra)

@@ -4,7 +4,7 @@ its default), and what the algorithms built on one env share (:class:`EnvAlgorit
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
+from collections.abc import Collection, Iterator
 from contextlib import contextmanager
 from dataclasses import replace
 from functools import partial
@@ -15,11 +15,14 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torch import nn
 from torchrl.collectors import Collector
+from torchrl.data import ReplayBuffer
 from torchrl.envs import EnvBase
+from torchrl.objectives import LossModule
 
 from rlpipe.config import RUN_KEYS, AlgoConfig, Config, EnvConfig
 from rlpipe.envs import EnvFactory, make_env
 from rlpipe.envs.backends import backend_of
+from rlpipe.errors import RlpipeError, check
 from rlpipe.models import mlp, object_record, user_network
 from rlpipe.registry import config_class
 
@@ -113,6 +116,16 @@ class Algorithm:
 
     def close(self) -> None:
         """Release the env the algorithm built and any workers or collectors it started."""
+
+    def start_from(self, state: dict[str, Any], parts: Collection[str], parent: Any) -> None:
+        """Begin a new run from another run's checkpoint (``state``: its ``"algo"`` entry, of a
+        run with algorithm config ``parent``; ``init_from``): its networks and observation
+        normaliser, and of ``parts`` (``"optimizer"``, ``"buffer"``) those too; counters,
+        generators and every setting of the config stay this run's. None by default."""
+        raise RlpipeError(
+            f"{type(self).__name__} cannot start from another run (init_from): it implements no "
+            "start_from; train it from scratch"
+        )
 
     def limit_frames(self, total_frames: int | None) -> None:
         """The runner's ``total_frames``: an iteration collects no frames past it."""
@@ -292,6 +305,57 @@ class EnvAlgorithm(Algorithm):
 
     def _restored(self) -> None:
         """Bring derived state (schedules, collector weights) in line after a load."""
+
+    def start_from(self, state: dict[str, Any], parts: Collection[str], parent: Any) -> None:
+        """:meth:`Algorithm.start_from` over :attr:`state_attrs` by kind: modules are weights
+        (a TorchRL loss module's networks, targets and learned parameters such as SAC's α; its
+        coefficients, γ and target entropy stay this config's), an optimizer's state comes with
+        ``"optimizer"`` (its learning rates and other settings stay this config's), a replay
+        buffer with ``"buffer"``; generators stay this run's. Then ``_restored``."""
+        kinds = {name: _kind(getattr(self, name)) for name in self.state_attrs}
+        for part in parts:
+            what = {"optimizer": "optimizer", "buffer": "replay buffer"}[part]
+            check(
+                part in kinds.values(),
+                f"init_{part}=true, but {type(self).__name__} keeps no {what} to start from: "
+                f"drop init_{part}",
+            )
+        for name, kind in kinds.items():
+            part, saved = getattr(self, name), state[name]
+            if kind == "weights":
+                part.load_state_dict(_learned(part, saved))
+            elif kind == "optimizer" and kind in parts:
+                groups = part.param_groups
+                settings = [{k: v for k, v in g.items() if k != "params"} for g in groups]
+                part.load_state_dict(saved)
+                for group, own in zip(part.param_groups, settings):
+                    group.update(own)  # this config's lr, betas, weight decay, ...
+            elif kind == "buffer" and kind in parts:
+                part.load_state_dict(saved)
+        self._restored()
+
+
+def _kind(part: Any) -> str | None:
+    """What :meth:`EnvAlgorithm.start_from` takes a state attribute for (None: nothing)."""
+    if isinstance(part, torch.optim.Optimizer):
+        return "optimizer"
+    if isinstance(part, ReplayBuffer):
+        return "buffer"
+    return "weights" if isinstance(part, nn.Module) else None
+
+
+def _learned(module: nn.Module, saved: dict[str, Any]) -> dict[str, Any]:
+    """``saved`` (a state dict of ``module``'s kind) with a TorchRL loss module's settings taken
+    from ``module``: every entry outside its networks (``*network*``) that is no parameter."""
+    if not isinstance(module, LossModule):
+        return saved
+    params = dict(module.named_parameters())
+    own = {
+        key: value
+        for key, value in module.state_dict().items()
+        if "network" not in key.split(".")[0] and key not in params
+    }
+    return {**saved, **own}
 
 
 def _save(part: Any) -> Any:

@@ -5,7 +5,7 @@ prints ``--help``) before torch loads; each algorithm's module re-exports its ow
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 from rlpipe.config import AlgoConfig, checked
 from rlpipe.errors import check, check_choice, check_fields
@@ -28,6 +28,8 @@ class OffPolicyConfig(AlgoConfig):
     ``learning_starts`` frames are in, runs ``updates_per_batch`` gradient steps on minibatches of
     ``batch_size``, the target networks following at rate ``tau``. DQN, SAC and any further
     off-policy algorithm extend it."""
+
+    buffer_keys: ClassVar[tuple[str, ...]] = ("buffer_size",)
 
     lr: float = checked(3e-4, "positive")
     batch_size: int = checked(256, "at_least_one")
@@ -53,6 +55,9 @@ class OffPolicyConfig(AlgoConfig):
 @dataclass
 class DQNConfig(OffPolicyConfig):
     """DQN hyper-parameters; the defaults are the workshop notebook's."""
+
+    architecture: ClassVar[tuple[str, ...]] = ("hidden_sizes", "network")
+    buffer_keys: ClassVar[tuple[str, ...]] = ("buffer_size", "n_steps")  # n-step transitions
 
     name: str = "dqn"
     total_frames: int | None = 60_000  # DQN has no budget of its own: the run's length
@@ -103,6 +108,8 @@ class DQNConfig(OffPolicyConfig):
 class SACConfig(OffPolicyConfig):
     """SAC hyper-parameters; the defaults are SB3's."""
 
+    architecture: ClassVar[tuple[str, ...]] = ("hidden_sizes", "network")
+
     name: str = "sac"
     total_frames: int | None = 50_000  # SAC has no budget of its own: the run's length
     eval_every: int = 5_000
@@ -114,6 +121,8 @@ class SACConfig(OffPolicyConfig):
 @dataclass
 class PPOConfig(AlgoConfig):
     """PPO hyper-parameters; the defaults are SB3's."""
+
+    architecture: ClassVar[tuple[str, ...]] = ("hidden_sizes", "network")
 
     name: str = "ppo"
     total_frames: int | None = 100_000  # PPO has no budget of its own: the run's length
@@ -150,6 +159,13 @@ class PPOConfig(AlgoConfig):
 @dataclass
 class ReinforceConfig(AlgoConfig):
     """REINFORCE hyper-parameters; the defaults are the REINFORCE/ARS notebook's."""
+
+    architecture: ClassVar[tuple[str, ...]] = (
+        "hidden_sizes",
+        "network",
+        "baseline",
+        "value_hidden_sizes",
+    )
 
     name: str = "reinforce"
     eval_every: int = 5_000  # about one evaluation per epoch on the continuous CartPole
@@ -199,6 +215,8 @@ class RayConfig:
 class ARSConfig(AlgoConfig):
     """ARS hyper-parameters; the defaults are the workshop notebook's."""
 
+    architecture: ClassVar[tuple[str, ...]] = ("policy", "hidden_sizes", "network")
+
     name: str = "ars"
     eval_every: int = 1_000_000  # frames between greedy evaluations (an iteration is 2N episodes)
     checkpoint_every: int = 1_000_000
@@ -228,6 +246,9 @@ class ARSConfig(AlgoConfig):
 @dataclass
 class MBRLConfig(AlgoConfig):
     """Model-based RL hyper-parameters; the defaults are a PETS-like recipe for Pendulum-v1."""
+
+    architecture: ClassVar[tuple[str, ...]] = ("hidden_sizes", "ensemble_size", "network")
+    buffer_keys: ClassVar[tuple[str, ...]] = ("buffer_size",)
 
     name: str = "mbrl"
     total_frames: int | None = 15_000  # MBRL has no budget of its own: the run's length

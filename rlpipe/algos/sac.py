@@ -4,6 +4,10 @@ soft target update."""
 
 from __future__ import annotations
 
+import math
+from collections.abc import Collection
+from typing import Any
+
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import NormalParamExtractor
@@ -78,6 +82,11 @@ class SAC(OffPolicy):
         self.target_updater = ForeachSoftUpdate(self.loss, tau=cfg.tau)
         self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=cfg.lr, fused=True)
         self.start_loop(env, self.policy)
+
+    def start_from(self, state: dict[str, Any], parts: Collection[str], parent: Any) -> None:
+        super().start_from(state, parts, parent)  # α is learned: it comes with the weights,
+        if self.cfg.alpha_init != parent.alpha_init:  # unless this run asks for another start
+            self.loss.log_alpha.data.fill_(math.log(self.cfg.alpha_init))
 
     def loss_of(self, sample: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         out = self.loss(sample)

@@ -4,6 +4,7 @@ running observation normaliser, evolved by :class:`rlpipe.algos.ars.ARSSearch`."
 from __future__ import annotations
 
 import os
+from collections.abc import Collection
 from functools import partial
 from typing import Any
 
@@ -101,6 +102,17 @@ class ARS(Algorithm):
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.search.load_state_dict(state)
         self.frames = int(state["frames"])
+
+    def start_from(self, state: dict[str, Any], parts: Collection[str], parent: Any) -> None:
+        """θ and the normaliser's statistics of another run's checkpoint (``init_from``);
+        iterations and the search's generator stay this run's. ARS has no optimizer or buffer."""
+        if parts:
+            part = sorted(parts)[0]
+            raise RlpipeError(
+                f"init_{part}=true, but ARS keeps no optimizer or replay buffer (its state is θ "
+                f"and the normaliser, which init_from loads): drop init_{part}"
+            )
+        self.search.policy.load_state_dict(state["policy"])
 
     def close(self) -> None:
         """Stop the rollout workers (if they were started)."""
