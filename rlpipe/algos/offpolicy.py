@@ -1,6 +1,7 @@
 """The off-policy loop that DQN, SAC and the next off-policy algorithm configure rather than copy:
 collect, count, store, warm up, K gradient steps, target update (SB3's ``OffPolicyAlgorithm``
-template, from TorchRL parts: the Collector, a ReplayBuffer and a target updater)."""
+template, from TorchRL parts: a ReplayBuffer and a target updater; the collection of
+:mod:`rlpipe.algos.collectors`)."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ from torchrl.envs import EnvBase
 from torchrl.objectives import LossModule, SoftUpdate
 
 from rlpipe.algos.base import LOSS, TRANSITION_KEYS, EnvAlgorithm, Metrics, episode_metrics
+from rlpipe.algos.collectors import CollectAction
 from rlpipe.algos.configs import OffPolicyConfig
 from rlpipe.cadence import Cadence
 
@@ -28,7 +30,8 @@ class OffPolicy(EnvAlgorithm):
 
     A subclass gives the maths. Its ``_build(env)`` sets ``self.policy`` (greedy),
     ``self.loss`` (a TorchRL loss module), ``self.optimizer`` and ``self.target_updater``, then
-    calls :meth:`start_loop` with the collecting policy; it implements :meth:`loss_of`, and may
+    calls :meth:`start_loop` with the collecting policy (and, for the lean collection, the same
+    policy on plain tensors); it implements :meth:`loss_of`, and may
     override :meth:`follow_schedules`, :meth:`collect_metrics`, :meth:`transitions` and
     :meth:`clip_gradients`. Checkpoints hold the loss module (networks and targets), the
     optimizer and the replay buffer.
@@ -37,13 +40,21 @@ class OffPolicy(EnvAlgorithm):
     cfg: OffPolicyConfig
     state_attrs = ("loss", "optimizer", "buffer")
 
-    def start_loop(self, env: EnvBase, collect_policy: TensorDictModuleBase) -> None:
-        """The replay buffer, the target cadence and the collector (last in ``_build``)."""
+    def start_loop(
+        self,
+        env: EnvBase,
+        collect_policy: TensorDictModuleBase,
+        *,
+        act: CollectAction | None = None,
+    ) -> None:
+        """The replay buffer, the target cadence and the collector (last in ``_build``);
+        ``act``: the collecting policy on plain tensors (see
+        :meth:`~rlpipe.algos.base.EnvAlgorithm.make_collector`)."""
         self.buffer = ReplayBuffer(  # sampled with an explicit size: a batch of minibatches
             storage=LazyTensorStorage(self.cfg.buffer_size, device=self.device)
         )
         self._target_cadence = Cadence(self.cfg.target_update_every, 0)
-        self.make_collector(env, collect_policy, self.cfg.frames_per_batch)
+        self.make_collector(env, collect_policy, self.cfg.frames_per_batch, act=act)
 
     def loss_of(self, sample: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """The loss to minimise on a sampled minibatch, and scalars to log (of the last step)."""
@@ -98,7 +109,7 @@ class OffPolicy(EnvAlgorithm):
     def _restored(self) -> None:
         self.follow_schedules()
         self._target_cadence = Cadence(self.cfg.target_update_every, self.frames)
-        self.collector.update_policy_weights_()
+        self.sync_collector()
 
 
 class ForeachSoftUpdate(SoftUpdate):

@@ -13,7 +13,7 @@ from torchrl.envs import EnvBase
 from torchrl.modules import MLP, ProbabilisticActor, TanhNormal
 
 from rlpipe.algos.configs import SACConfig
-from rlpipe.algos.direct import DirectSACLoss
+from rlpipe.algos.direct import DirectSACLoss, inner_network, tanh_normal_rsample
 from rlpipe.algos.offpolicy import ForeachSoftUpdate, OffPolicy
 from rlpipe.envs import is_discrete, observation_size
 from rlpipe.errors import RlpipeError
@@ -77,7 +77,15 @@ class SAC(OffPolicy):
         self.loss.make_value_estimator(gamma=cfg.gamma)
         self.target_updater = ForeachSoftUpdate(self.loss, tau=cfg.tau)
         self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=cfg.lr, fused=True)
-        self.start_loop(env, self.policy)
+        self._actor = inner_network(self.policy).module
+        self._bounds = tuple(torch.as_tensor(b, device=self.device) for b in self.loss.bounds)
+        self.start_loop(env, self.policy, act=self._explore)
+
+    def _explore(self, observation: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The collecting policy on plain tensors: a TanhNormal draw on the actor's network's
+        ``(loc, scale)``, as the ``ProbabilisticActor`` samples."""
+        action, _ = tanh_normal_rsample(*self._actor(observation), *self._bounds)
+        return {"action": action}
 
     def loss_of(self, sample: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         out = self.loss(sample)
