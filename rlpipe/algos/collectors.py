@@ -92,14 +92,15 @@ class ArrayCollector:
     """The lean collection path: a :func:`rlpipe.make_env` env's copies stepped on arrays
     (``copies``, from :func:`rlpipe.envs.env_copies`), ``act`` choosing the actions.
 
-    Its batches hold what TorchRL's ``Collector`` yields on the same env, key for key, with the
-    same dtypes, shapes and values for the same actions: ``observation``, the policy's outputs,
-    ``step_count``, ``episode_reward``, ``is_init``, ``done``/``terminated``/``truncated`` (all
-    false: a finished copy is reset before its next step), ``("collector", "traj_ids")`` and
-    under ``"next"`` the step's observation, reward, flags and the counters after it. Episodes
-    run on across batches; the seeds and resets are the backend's own calls in TorchRL's order,
-    so the same seed gives the same episodes. Observations go to ``device`` for ``act``,
-    actions back to the env; batches are stored on ``device``.
+    Its batches hold what the algorithms read of TorchRL's ``Collector``'s on the same env, with
+    the same dtypes, shapes and, for the same actions, values: ``observation``, the outputs of
+    ``act`` and, under ``"next"``, the step's ``observation``, ``reward``, ``done``,
+    ``terminated`` and ``truncated`` with the ``step_count`` and ``episode_reward`` after it
+    (not the Collector's ``is_init``, ``("collector", "traj_ids")`` or the counters and flags
+    before each step). Episodes run on across batches; a finished copy is reset before its next
+    step; the seeds and resets are the backend's calls in TorchRL's order, so the same seed
+    gives the same episodes. Observations go to ``device`` for ``act``, actions back to the
+    env, and the batches are stored on ``device``.
     """
 
     def __init__(
@@ -110,21 +111,13 @@ class ArrayCollector:
         self._obs_dtype = env.observation_spec["observation"].dtype
         self._reward_dtype = torch_to_numpy_dtype_dict[env.reward_spec.dtype]
         self._action_dtype = torch_to_numpy_dtype_dict[env.base_env.action_spec.dtype]
-        self._trajectories = 0  # trajectory ids handed out
         self._start()
 
     def _start(self) -> None:
-        """Every copy in a new episode (a full reset), with a new trajectory id."""
+        """Every copy in a new episode (a full reset)."""
         self._obs = self.copies.reset_copies()
-        self._count = np.zeros(self.n, np.int64)
-        self._return = np.zeros(self.n, self._reward_dtype)
-        self._init = np.ones(self.n, bool)
-        self._traj = self._new_ids(self.n)
-
-    def _new_ids(self, count: int) -> np.ndarray:
-        ids = np.arange(self._trajectories, self._trajectories + count)
-        self._trajectories += count
-        return ids
+        self._count = np.zeros(self.n, np.int64)  # StepCounter's step_count
+        self._return = np.zeros(self.n, self._reward_dtype)  # RewardSum's episode_reward
 
     @torch.no_grad()
     def batch(self, steps: int) -> TensorDictBase:
@@ -136,56 +129,39 @@ class ArrayCollector:
                 action = out["action"].cpu().numpy().astype(self._action_dtype, copy=False)
                 obs, reward, terminated, truncated = self.copies.step_copies(action)
                 reward = reward.astype(self._reward_dtype, copy=False)
-                before = self._obs, self._count, self._return, self._init, self._traj
-                rows.append((*before, obs, reward, terminated, truncated))
+                count, ret = self._count + 1, self._return + reward
+                rows.append((self._obs, obs, reward, terminated, truncated, count, ret))
                 outs.append(out)
-                self._advance(obs, reward, terminated | truncated)
+                done = terminated | truncated
+                self._count, self._return = np.where(done, 0, count), np.where(done, 0, ret)
+                if done.any():
+                    fresh = self.copies.reset_copies(done)
+                    obs = np.where(done.reshape(-1, *(1,) * (obs.ndim - 1)), fresh, obs)
+                self._obs = obs
         return self._assemble(rows, outs)
 
-    def _advance(self, obs: np.ndarray, reward: np.ndarray, done: np.ndarray) -> None:
-        """The counters after a step; the copies that finished reset (new arrays throughout:
-        the batch's rows keep the old ones)."""
-        self._count = np.where(done, 0, self._count + 1)
-        self._return = np.where(done, self._reward_dtype.type(0), self._return + reward)
-        self._init = done
-        if done.any():
-            fresh = self.copies.reset_copies(done)
-            obs = np.where(done.reshape(-1, *(1,) * (obs.ndim - 1)), fresh, obs)
-            self._traj = self._traj.copy()
-            self._traj[done] = self._new_ids(int(done.sum()))
-        self._obs = obs
-
     def _assemble(self, rows: list[tuple], outs: list[dict[str, torch.Tensor]]) -> TensorDictBase:
-        """One TensorDict of the steps' arrays (``[copies, steps]``) and the policy's outputs."""
-        obs, count, ret, init, traj, nxt, reward, terminated, truncated = (
-            torch.from_numpy(np.stack(column, 1)) for column in zip(*rows)
+        """One TensorDict of the steps' arrays and the outputs of ``act``, ``[copies, steps]``."""
+        obs, nxt, reward, terminated, truncated, count, ret = (
+            torch.from_numpy(np.ascontiguousarray(np.array(column).swapaxes(0, 1)))
+            for column in zip(*rows)
         )
-        count, ret, init, reward = (x.unsqueeze(-1) for x in (count, ret, init, reward))
         terminated, truncated = terminated.unsqueeze(-1), truncated.unsqueeze(-1)
         batch = TensorDict(
             {
                 "observation": obs.to(self._obs_dtype),
-                "step_count": count,
-                "episode_reward": ret,
-                "is_init": init,
-                "done": torch.zeros_like(terminated),
-                "terminated": torch.zeros_like(terminated),
-                "truncated": torch.zeros_like(terminated),
-                "collector": {"traj_ids": traj},
                 "next": {
                     "observation": nxt.to(self._obs_dtype),
-                    "reward": reward,
+                    "reward": reward.unsqueeze(-1),
                     "done": terminated | truncated,
                     "terminated": terminated,
                     "truncated": truncated,
-                    "step_count": count + 1,
-                    "episode_reward": ret + reward,
-                    "is_init": torch.zeros_like(terminated),
+                    "step_count": count.unsqueeze(-1),
+                    "episode_reward": ret.unsqueeze(-1),
                 },
             },
             batch_size=[self.n, len(rows)],
             device=self.device,
-            names=[None, "time"],
         )
         for key in outs[0]:
             batch.set(key, torch.stack([out[key] for out in outs], 1))
