@@ -2,11 +2,14 @@
 on the same env and actions, value by value on the keys the algorithms read, on both backends
 (episodes across batches, partial resets, cuts, restarts); restarts reseed; DQN's, SAC's and
 PPO's plain-tensor policies draw what their TensorDict policies draw; which envs get which path;
-the cut at the run's frame limit."""
+the cut at the run's frame limit; benchmarks/collection.py's table."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from functools import partial
+from pathlib import Path
 
 import pytest
 import torch
@@ -174,3 +177,19 @@ def test_collect_cuts_at_the_frame_limit_to_whole_steps(backend):
     algo.frames = 29
     assert algo.collect().batch_size == (3, 1)
     algo.close()
+
+
+def test_the_collection_benchmark_writes_its_table(tmp_path):
+    out = tmp_path / "BENCH.md"
+    script = Path(__file__).resolve().parents[1] / "benchmarks" / "collection.py"
+    args = ["--presets", "sac_pendulum", "--backends", "gymnasium", "--rounds", "1"]
+    proc = subprocess.run(
+        [sys.executable, str(script), *args, "--batches", "2", "--append", str(out)],
+        capture_output=True,
+        text=True,
+    )
+    assert proc.returncode == 0, proc.stderr
+    rows = [line for line in out.read_text().splitlines() if line.startswith("| `sac_pendulum`")]
+    assert len(rows) == 1 and rows[0].count("|") == 9, out.read_text()
+    cells = [cell.strip() for cell in rows[0].split("|")[1:-1]]
+    assert cells[1:3] == ["gymnasium", "1"] and all(float(c) > 0 for c in cells[3:7])

@@ -1,5 +1,5 @@
-"""DQN assembled from TorchRL parts: QValueActor, EGreedyModule, Collector, ReplayBuffer,
-DQNLoss (Huber; DirectDQNLoss) and SoftUpdate (HardUpdate for tau=1)."""
+"""DQN assembled from TorchRL parts: QValueActor, EGreedyModule (collecting on plain tensors),
+ReplayBuffer, DQNLoss (Huber; DirectDQNLoss) and SoftUpdate (HardUpdate for tau=1)."""
 
 from __future__ import annotations
 

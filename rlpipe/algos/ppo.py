@@ -1,5 +1,5 @@
-"""PPO assembled from TorchRL parts: a ProbabilisticActor and a ValueOperator, the Collector on the
-batched env, GAE advantages and ClipPPOLoss over minibatch epochs."""
+"""PPO assembled from TorchRL parts: a ProbabilisticActor (collecting on plain tensors) and a
+ValueOperator on the batched env, GAE advantages and ClipPPOLoss over minibatch epochs."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
-"""SAC assembled from TorchRL parts: a tanh-Gaussian ProbabilisticActor, twin Q networks, the
-Collector, a ReplayBuffer, SACLoss (automatic entropy tuning; its forward on plain tensors) and a
-soft target update."""
+"""SAC assembled from TorchRL parts: a tanh-Gaussian ProbabilisticActor (collecting on plain
+tensors), twin Q networks, a ReplayBuffer, SACLoss (automatic entropy tuning; its forward on plain
+tensors) and a soft target update."""
 
 from __future__ import annotations
 
