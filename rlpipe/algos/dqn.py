@@ -136,7 +136,7 @@ class DQN(OffPolicy):
         if self.multistep is None:
             return super().transitions(batch)
         stored = n_step_transitions(batch, self.multistep)
-        return stored.reshape(-1).select(*TRANSITION_KEYS, "steps_to_next_obs")
+        return stored.select(*TRANSITION_KEYS, "steps_to_next_obs").reshape(-1)
 
     def loss_of(self, sample: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         return self.loss(sample)["loss"], {}

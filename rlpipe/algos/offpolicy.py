@@ -70,7 +70,7 @@ class OffPolicy(EnvAlgorithm):
     def transitions(self, batch: TensorDictBase) -> TensorDictBase:
         """What the buffer stores of a collected ``[env copies, steps]`` batch: one row per
         transition, :data:`~rlpipe.algos.base.TRANSITION_KEYS`."""
-        return batch.reshape(-1).select(*TRANSITION_KEYS)
+        return batch.select(*TRANSITION_KEYS).reshape(-1)
 
     def clip_gradients(self) -> None:
         """Between ``backward`` and the optimizer's step (nothing by default)."""
