@@ -4,17 +4,18 @@
 For each preset and backend one process builds the preset's algorithm (seed 0, one torch thread),
 whose collector is the lean ``ArrayCollector``, and a ``TorchRLCollector`` running the
 algorithm's TensorDict collecting policy on a second env from the same factory (what rlpipe
-used before). Rounds alternate the two (``--rounds``, each ``--batches`` batches of the preset's
-size); the table gives each one's median milliseconds per env step of all copies, per frame,
-and their ratio.
+used before). Rounds alternate the two (``--rounds``, each about ``--steps`` env steps in batches
+of the preset's size); the table gives each one's median milliseconds per env step of all
+copies, per frame, and their ratio.
 
     python benchmarks/collection.py [--presets dqn_cartpole sac_pendulum ppo_cartpole]
-        [--backends gymnasium envpool] [--rounds 5] [--batches 40] [--append BENCHMARKS.md]
+        [--backends gymnasium envpool] [--rounds 5] [--steps 320] [--append BENCHMARKS.md]
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import statistics
 import time
@@ -48,7 +49,7 @@ def seconds_per_batch(collector, steps: int, batches: int) -> float:
     return (time.perf_counter() - start) / batches
 
 
-def measure(preset: str, backend: str, rounds: int, batches: int) -> dict:
+def measure(preset: str, backend: str, rounds: int, env_steps: int) -> dict:
     """Median ms per env step of the lean loop and of TorchRL's Collector, and the copies."""
     cfg = compose_run(f"+experiment={preset}", "seed=0", f"env.backend={backend}").resolved()
     env_cfg, _ = resolve_backend(cfg.env)
@@ -57,6 +58,7 @@ def measure(preset: str, backend: str, rounds: int, batches: int) -> dict:
     algo = make_algorithm(factory, cfg.algo, device="cpu")
     lean, (copies, steps) = algo.collector, algo.collect().batch_size
     assert isinstance(lean, ArrayCollector), type(lean)
+    batches = math.ceil(env_steps / steps)
     theirs = TorchRLCollector(factory(), POLICIES[cfg.algo.name](algo), steps, algo.device)
     times: dict[str, list[float]] = {"lean": [], "collector": []}
     try:
@@ -77,7 +79,7 @@ def main() -> None:
     parser.add_argument("--presets", nargs="+", default=list(PRESETS), choices=PRESETS)
     parser.add_argument("--backends", nargs="+", default=["gymnasium", "envpool"])
     parser.add_argument("--rounds", type=int, default=5)
-    parser.add_argument("--batches", type=int, default=40, help="batches per round and path")
+    parser.add_argument("--steps", type=int, default=320, help="env steps per round and path")
     parser.add_argument("--append", type=Path, help="replace this section of a Markdown file")
     args = parser.parse_args()
     torch.set_num_threads(1)
@@ -86,7 +88,7 @@ def main() -> None:
     rows = []
     for preset in args.presets:
         for backend in backends:
-            r = measure(preset, backend, args.rounds, args.batches)
+            r = measure(preset, backend, args.rounds, args.steps)
             rows.append(
                 [
                     f"`{preset}`",
@@ -115,7 +117,7 @@ def main() -> None:
         f"- machine: {machine(['torch', 'torchrl', 'tensordict', 'gymnasium', 'envpool'])}",
         f"- load before: {load:.2f}; command: `python benchmarks/collection.py --presets "
         f"{' '.join(args.presets)} --backends {' '.join(backends)} --rounds {args.rounds} "
-        f"--batches {args.batches}`",
+        f"--steps {args.steps}`",
         "- a step: one env step of all copies with the preset's collecting policy (seed 0, one "
         f"torch thread), batches of the preset's size; medians of {args.rounds} alternating "
         "rounds in one process",

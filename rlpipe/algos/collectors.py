@@ -1,15 +1,18 @@
 """How an :class:`~rlpipe.algos.base.EnvAlgorithm` collects its batches: a lean loop over a
 :func:`rlpipe.make_env` env's arrays (:class:`ArrayCollector`), or TorchRL's ``Collector`` for
-any other env (:class:`TorchRLCollector`); both yield the same ``[env copies, steps]`` batches.
+any other env (:class:`TorchRLCollector`); both yield ``[env copies, steps]`` TensorDicts with
+the keys the algorithms read.
 
 Why the lean loop is written by hand: TorchRL's ``Collector`` over make_env's ``TransformedEnv``
 (``DoubleToFloat``, ``StepCounter``, ``InitTracker``, ``RewardSum``) with a TensorDict policy
-builds, checks and merges several TensorDicts per env step (torchrl 0.14.1: about 1.4 ms per
-collected step of SAC on one Pendulum copy, where a hand-written loop's whole step, actor,
-sample, env step and buffer write, costs about 0.25 ms; BENCHMARKS.md has the measurements).
-The lean loop steps the backend's copies on NumPy arrays (:func:`rlpipe.envs.env_copies`), keeps
-the four transforms' counters itself, calls the policy on plain tensors (a
-:data:`CollectAction`) and builds one TensorDict per batch.
+builds, checks and merges several TensorDicts per env step. Measured on 2 busy cores (torchrl
+0.14.1, one thread): 1.4 ms per collected step of SAC on one Pendulum copy, on either backend,
+where the lean loop takes 0.3 ms, about what a hand-written PyTorch loop's whole step (actor,
+draw, env step, buffer write) costs there; 3.5 to 6.5 times less per step for the DQN, SAC and
+PPO presets (``benchmarks/collection.py``, BENCHMARKS.md). The lean loop steps the backend's
+copies on NumPy arrays (:func:`rlpipe.envs.env_copies`), keeps ``StepCounter``'s and
+``RewardSum``'s counts itself, calls the policy on plain tensors (a :data:`CollectAction`) and
+builds one TensorDict per batch.
 """
 
 from __future__ import annotations
