@@ -308,7 +308,7 @@ def test_episode_metrics_cover_every_sub_batch():
     # 2 envs x 48 steps in 3 sub-batches of 16 steps; random CartPole episodes end within them
     cfg = MBRLConfig(**{**SMALL, "frames_per_batch": 96, "warmup_frames": 1000})
     algo = MBRL(partial(make_env, EnvConfig(id="CartPole-v1", num_envs=2), seed=0), cfg)
-    assert algo.collector.requested_frames_per_batch == 32
+    assert (algo._copies, algo._steps) == (2, 16)  # sub-batches of 16 steps of both copies
     metrics = algo.train_step()
     assert algo.frames == len(algo.buffer) == 96
     # episodes end only by termination here (no truncation within 48 steps)

@@ -14,11 +14,11 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torch import nn
-from torchrl.collectors import Collector
 from torchrl.data import ReplayBuffer
 from torchrl.envs import EnvBase
 from torchrl.objectives import LossModule
 
+from rlpipe.algos.collectors import CollectAction, make_collector
 from rlpipe.config import RUN_KEYS, AlgoConfig, Config, EnvConfig
 from rlpipe.envs import EnvFactory, make_env
 from rlpipe.envs.backends import backend_of
@@ -196,21 +196,6 @@ def closing_on_error(env: EnvBase) -> Iterator[EnvBase]:
         raise
 
 
-class BatchCut:
-    """A TorchRL collector interruptor that ends the next batch after ``steps`` env steps
-    (``None``: the whole batch); see :meth:`EnvAlgorithm.collect`."""
-
-    def __init__(self) -> None:
-        self.steps: int | None = None
-
-    def collection_stopped(self) -> bool:
-        """Called by the collector after each env step of a batch."""
-        if self.steps is None:
-            return False
-        self.steps -= 1
-        return self.steps <= 0
-
-
 class EnvAlgorithm(Algorithm):
     """What DQN, REINFORCE, MBRL, PPO and SAC share: built on one env from the factory (closed
     again if building fails), and a state dict over named attributes.
@@ -249,38 +234,39 @@ class EnvAlgorithm(Algorithm):
         return mlp(in_features, out_features, self.cfg.hidden_sizes, self.activation)
 
     def make_collector(
-        self, env: EnvBase, policy: TensorDictModuleBase, frames_per_batch: int
+        self,
+        env: EnvBase,
+        policy: TensorDictModuleBase,
+        frames_per_batch: int,
+        *,
+        act: CollectAction | None = None,
     ) -> None:
-        """An endless TorchRL ``Collector`` (``self.collector``) of ``frames_per_batch`` frames per
-        batch, rounded up to whole steps of the env's copies; policy and storage on the device."""
+        """What :meth:`collect` draws from (``self.collector``): batches of ``frames_per_batch``
+        frames, rounded up to whole steps of the env's copies, stored on the device.
+
+        On a :func:`rlpipe.make_env` env, the lean loop of
+        :class:`~rlpipe.algos.collectors.ArrayCollector`, choosing actions with ``act`` (the
+        sampling policy on plain tensors, e.g. DQN's ε-greedy) or, without one, with ``policy``
+        on a reused TensorDict; on any other env (or with a policy that reads more than the
+        observation), TorchRL's ``Collector`` running ``policy``
+        (:class:`~rlpipe.algos.collectors.TorchRLCollector`). Either way the batches are the
+        same ``[env copies, steps]`` TensorDicts (``act`` must compute what ``policy`` does).
+        """
         self._copies, self._steps = batch_steps(env, frames_per_batch)
-        self._cut = BatchCut()
-        self.collector = Collector(
-            env,
-            policy,
-            frames_per_batch=self._steps * self._copies,
-            total_frames=-1,
-            policy_device=self.device,
-            storing_device=self.device,
-            interruptor=self._cut,
-        )
-        self._batches = iter(self.collector)
-        # on one device the collector steps the very policy; otherwise it holds a copy
-        self._copy_weights = self.device != torch.device(env.device)
+        self.collector = make_collector(env, policy, self._steps, self.device, act)
 
     def sync_collector(self) -> None:
-        """After updates: the collector's copy of the policy takes the new weights."""
-        if self._copy_weights:
-            self.collector.update_policy_weights_()
+        """After updates: a collector's copy of the policy (TorchRL's, on another device than
+        the env's) takes the new weights."""
+        self.collector.sync()
 
     def close(self) -> None:
         """Stop the collector (:meth:`make_collector`) and close its env."""
-        self.collector.shutdown()
+        self.collector.close()
 
     def restart_episodes(self) -> None:
         """Cut the collector's episodes: every env copy reset, seeded from torch's generator."""
-        self.collector.set_seed(int(torch.randint(2**31 - 1, ())))
-        self.collector.reset()
+        self.collector.restart(int(torch.randint(2**31 - 1, ())))
 
     def collect(self, at_most: int | None = None) -> TensorDictBase:
         """The collector's next batch, ``[env copies, steps]``, cut short (whole steps of the
@@ -289,8 +275,7 @@ class EnvAlgorithm(Algorithm):
         caps = [at_most, None if self.frame_limit is None else self.frame_limit - self.frames]
         frames = min((cap for cap in caps if cap is not None), default=None)
         steps = self._steps if frames is None else max(math.ceil(frames / self._copies), 1)
-        self._cut.steps = steps if steps < self._steps else None
-        return next(self._batches)[..., :steps]
+        return self.collector.batch(min(steps, self._steps))
 
     def state_dict(self) -> dict[str, Any]:
         state = {name: _save(getattr(self, name)) for name in self.state_attrs}

@@ -1,5 +1,5 @@
-"""DQN assembled from TorchRL parts: QValueActor, EGreedyModule, Collector, ReplayBuffer,
-DQNLoss (Huber; DirectDQNLoss) and SoftUpdate (HardUpdate for tau=1)."""
+"""DQN assembled from TorchRL parts: QValueActor, EGreedyModule (collecting on plain tensors),
+ReplayBuffer, DQNLoss (Huber; DirectDQNLoss) and SoftUpdate (HardUpdate for tau=1)."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from torchrl.objectives import HardUpdate
 
 from rlpipe.algos.base import TRANSITION_KEYS, Metrics, batch_steps
 from rlpipe.algos.configs import DQNConfig
-from rlpipe.algos.direct import DirectDQNLoss
+from rlpipe.algos.direct import DirectDQNLoss, inner_network
 from rlpipe.algos.offpolicy import ForeachSoftUpdate, OffPolicy
 from rlpipe.envs import is_discrete, observation_size
 from rlpipe.errors import RlpipeError, check
@@ -111,7 +111,18 @@ class DQN(OffPolicy):
             f"at least {cfg.n_steps * copies}",
         )
         self.multistep = MultiStep(cfg.gamma, cfg.n_steps) if cfg.n_steps > 1 else None
-        self.start_loop(env, TensorDictSequential(self.policy, self.exploration))
+        self._q_network = inner_network(self.policy).module
+        self.start_loop(env, TensorDictSequential(self.policy, self.exploration), act=self._explore)
+
+    def _explore(self, observation: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The collecting policy on plain tensors, ``EGreedyModule``'s ε-greedy with its random
+        draws: with probability ε (``self.exploration.eps``) a uniformly random action, else the
+        Q-network's argmax."""
+        values = self._q_network(observation)
+        greedy = values.argmax(-1)
+        explore = torch.rand(greedy.shape, device=greedy.device) < self.exploration.eps
+        random = torch.randint_like(greedy, values.shape[-1])  # drawn in EGreedyModule's order
+        return {"action": torch.where(explore, random, greedy)}
 
     def follow_schedules(self) -> None:
         self.exploration.eps.fill_(epsilon(self.frames, self.cfg))
@@ -125,7 +136,7 @@ class DQN(OffPolicy):
         if self.multistep is None:
             return super().transitions(batch)
         stored = n_step_transitions(batch, self.multistep)
-        return stored.reshape(-1).select(*TRANSITION_KEYS, "steps_to_next_obs")
+        return stored.select(*TRANSITION_KEYS, "steps_to_next_obs").reshape(-1)
 
     def loss_of(self, sample: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         return self.loss(sample)["loss"], {}

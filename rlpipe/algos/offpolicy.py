@@ -1,6 +1,7 @@
 """The off-policy loop that DQN, SAC and the next off-policy algorithm configure rather than copy:
 collect, count, store, warm up, K gradient steps, target update (SB3's ``OffPolicyAlgorithm``
-template, from TorchRL parts: the Collector, a ReplayBuffer and a target updater)."""
+template, from TorchRL parts: a ReplayBuffer and a target updater; the collection of
+:mod:`rlpipe.algos.collectors`)."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from torchrl.envs import EnvBase
 from torchrl.objectives import LossModule, SoftUpdate
 
 from rlpipe.algos.base import LOSS, TRANSITION_KEYS, EnvAlgorithm, Metrics, episode_metrics
+from rlpipe.algos.collectors import CollectAction
 from rlpipe.algos.configs import OffPolicyConfig
 from rlpipe.cadence import Cadence
 
@@ -30,8 +32,9 @@ class OffPolicy(EnvAlgorithm):
 
     A subclass gives the maths. Its ``_build(env)`` sets ``self.policy`` (greedy),
     ``self.loss`` (a TorchRL loss module), ``self.optimizer`` and ``self.target_updater``, then
-    calls :meth:`start_loop` with the collecting policy; it implements :meth:`loss_of`, and may
-    override :meth:`follow_schedules`, :meth:`collect_metrics`, :meth:`transitions`,
+    calls :meth:`start_loop` with the collecting policy (and, for the lean collection, the same
+    policy on plain tensors); it implements :meth:`loss_of`, and may override
+    :meth:`follow_schedules`, :meth:`collect_metrics`, :meth:`transitions`,
     :meth:`clip_gradients` and :meth:`update_targets`. Checkpoints hold the loss module
     (networks and targets), the optimizer, the replay buffer and :attr:`updates`.
     """
@@ -42,13 +45,21 @@ class OffPolicy(EnvAlgorithm):
     # read (e.g. TD3's delayed actor and target updates)
     updates: int = 0
 
-    def start_loop(self, env: EnvBase, collect_policy: TensorDictModuleBase) -> None:
-        """The replay buffer, the target cadence and the collector (last in ``_build``)."""
+    def start_loop(
+        self,
+        env: EnvBase,
+        collect_policy: TensorDictModuleBase,
+        *,
+        act: CollectAction | None = None,
+    ) -> None:
+        """The replay buffer, the target cadence and the collector (last in ``_build``);
+        ``act``: the collecting policy on plain tensors (see
+        :meth:`~rlpipe.algos.base.EnvAlgorithm.make_collector`)."""
         self.buffer = ReplayBuffer(  # sampled with an explicit size: a batch of minibatches
             storage=LazyTensorStorage(self.cfg.buffer_size, device=self.device)
         )
         self._target_cadence = Cadence(self.cfg.target_update_every, 0)
-        self.make_collector(env, collect_policy, self.cfg.frames_per_batch)
+        self.make_collector(env, collect_policy, self.cfg.frames_per_batch, act=act)
 
     def loss_of(self, sample: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """The loss to minimise on a sampled minibatch, and scalars to log (of the last step)."""
@@ -64,7 +75,7 @@ class OffPolicy(EnvAlgorithm):
     def transitions(self, batch: TensorDictBase) -> TensorDictBase:
         """What the buffer stores of a collected ``[env copies, steps]`` batch: one row per
         transition, :data:`~rlpipe.algos.base.TRANSITION_KEYS`."""
-        return batch.reshape(-1).select(*TRANSITION_KEYS)
+        return batch.select(*TRANSITION_KEYS).reshape(-1)
 
     def clip_gradients(self) -> None:
         """Between ``backward`` and the optimizer's step (nothing by default)."""
@@ -116,7 +127,7 @@ class OffPolicy(EnvAlgorithm):
     def _restored(self) -> None:
         self.follow_schedules()
         self._target_cadence = Cadence(self.cfg.target_update_every, self.frames)
-        self.collector.update_policy_weights_()
+        self.sync_collector()
 
 
 class ForeachSoftUpdate(SoftUpdate):

@@ -1,5 +1,6 @@
-"""PPO assembled from TorchRL parts: a ProbabilisticActor and a ValueOperator, the Collector on the
-batched env, GAE advantages and ClipPPOLoss (its forward on plain tensors) over minibatch epochs."""
+"""PPO assembled from TorchRL parts: a ProbabilisticActor (collecting on plain tensors) and a
+ValueOperator on the batched env, GAE advantages and ClipPPOLoss (its forward on plain tensors)
+over minibatch epochs."""
 
 from __future__ import annotations
 
@@ -8,13 +9,14 @@ import math
 import torch
 from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
-from torchrl.modules import ValueOperator
+from torchrl.modules import ProbabilisticActor, ValueOperator
 from torchrl.objectives.value import GAE
 
 from rlpipe.algos.base import LOSS, EnvAlgorithm, Metrics, episode_metrics
+from rlpipe.algos.collectors import CollectAction
 from rlpipe.algos.configs import PPOConfig
-from rlpipe.algos.direct import DirectPPOLoss
-from rlpipe.envs import observation_size
+from rlpipe.algos.direct import LOG_SQRT_2PI, DirectPPOLoss, inner_network
+from rlpipe.envs import is_discrete, observation_size
 from rlpipe.models import make_policy, mlp
 from rlpipe.normalizer import Normalizer
 
@@ -38,6 +40,41 @@ LOGGED = {
     "clip_fraction": "train/clip_fraction",
     "explained_variance": "train/explained_variance",
 }
+
+
+def sampling_action(
+    actor: ProbabilisticActor, env: EnvBase, log_prob_key: str, device: torch.device
+) -> CollectAction:
+    """:func:`~rlpipe.models.make_policy`'s sampling policy (``log_prob=True``) on plain
+    tensors, computing what its distribution module does, with the same random draws: a
+    Categorical draw from the logits and its log-probability, or a Gaussian draw (``sample``),
+    its log-probability summed over the action's dimensions and the draw clipped into the
+    bounds (``action``)."""
+    net = inner_network(actor).module
+    if is_discrete(env):
+
+        def categorical(observation: torch.Tensor) -> dict[str, torch.Tensor]:
+            logits = net(observation)
+            log_probs = logits - logits.logsumexp(-1, keepdim=True)  # Categorical's own logits
+            action = torch.multinomial(log_probs.softmax(-1), 1, True)
+            log_prob = log_probs.gather(-1, action).squeeze(-1)
+            return {"action": action.squeeze(-1), log_prob_key: log_prob}
+
+        return categorical
+    space = env.action_spec_unbatched.space
+    low, high = space.low.to(device), space.high.to(device)
+
+    def gaussian(observation: torch.Tensor) -> dict[str, torch.Tensor]:
+        loc, scale = net(observation)
+        sample = loc + torch.empty_like(loc).normal_() * scale  # Normal.rsample's draw
+        log_density = -((sample - loc) ** 2) / (2 * scale**2) - scale.log() - LOG_SQRT_2PI
+        return {
+            "sample": sample,
+            log_prob_key: log_density.sum(-1),
+            "action": torch.clamp(sample, low, high),
+        }
+
+    return gaussian
 
 
 class PPO(EnvAlgorithm):
@@ -86,7 +123,8 @@ class PPO(EnvAlgorithm):
         )
         self._params = list(self.loss.parameters())
         self.optimizer = torch.optim.Adam(self._params, lr=cfg.lr, eps=1e-5, fused=True)
-        self.make_collector(env, self.policy, cfg.frames_per_batch)
+        act = sampling_action(actor, env, self.loss.tensor_keys.sample_log_prob, device)
+        self.make_collector(env, self.policy, cfg.frames_per_batch, act=act)
 
     def _normalized(
         self, in_features: int, out_features: int, outputs: str, *, critic: bool = False
@@ -141,4 +179,4 @@ class PPO(EnvAlgorithm):
         return [data[i] for i in index.split(self.cfg.minibatch_size)]
 
     def _restored(self) -> None:
-        self.collector.update_policy_weights_()
+        self.sync_collector()

@@ -4,8 +4,10 @@ the gymnasium or the EnvPool backend."""
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Protocol
 
 import gymnasium as gym
+import numpy as np
 from torchrl.data import Categorical, OneHot
 from torchrl.envs import (
     Compose,
@@ -20,11 +22,13 @@ from torchrl.envs import (
 from rlpipe.config import EnvConfig
 from rlpipe.envs.backends import backend_of
 from rlpipe.envs.envpool_env import EnvPoolEnv
-from rlpipe.envs.gymnasium_env import gymnasium_env, vector_env
+from rlpipe.envs.gymnasium_env import VectorCopies, gymnasium_env, vector_env
 from rlpipe.errors import RlpipeError
 
 __all__ = [
+    "EnvCopies",
     "EnvFactory",
+    "env_copies",
     "envpool_env",
     "episode_limit",
     "is_discrete",
@@ -40,6 +44,25 @@ __all__ = [
 # ``vectorization="sync"`` (its rollouts step the gymnasium copies of a make_env env, or the
 # EnvPool behind it, then also ``threads=``).
 EnvFactory = Callable[..., EnvBase]
+
+# what make_env puts over either backend, in this order
+TRANSFORMS = (DoubleToFloat, StepCounter, InitTracker, RewardSum)
+# the observation keys of a make_env env: the backend's, then StepCounter's, InitTracker's and
+# RewardSum's
+OBSERVATION_KEYS = {"observation", "step_count", "is_init", "episode_reward"}
+
+
+class EnvCopies(Protocol):
+    """A :func:`make_env` env's copies on NumPy arrays: its backend's resets and steps without
+    TorchRL's per-step TensorDicts (:func:`env_copies`)."""
+
+    def reset_copies(self, mask: np.ndarray | None = None) -> np.ndarray:
+        """New episodes in the copies ``mask`` selects (None: all); every copy's observation."""
+        ...
+
+    def step_copies(self, action: np.ndarray) -> tuple[np.ndarray, ...]:
+        """One step; every copy's observation, reward, terminated and truncated."""
+        ...
 
 
 def make_env(
@@ -79,10 +102,27 @@ def make_env(
         base = gymnasium_env(
             cfg, n, device=device, render_mode=render_mode, vectorization=vectorization
         )
-    env = TransformedEnv(base, Compose(DoubleToFloat(), StepCounter(), InitTracker(), RewardSum()))
+    env = TransformedEnv(base, Compose(*(transform() for transform in TRANSFORMS)))
     if seed is not None and not isinstance(base, EnvPoolEnv):  # EnvPool's is set at build
         env.set_seed(seed)
     return env
+
+
+def env_copies(env: EnvBase) -> EnvCopies | None:
+    """The copies of a :func:`make_env` env on arrays: a gymnasium env's
+    :class:`~rlpipe.envs.gymnasium_env.VectorCopies`, or the
+    :class:`~rlpipe.envs.envpool_env.EnvPoolEnv` itself; None for any other env (other
+    transforms, keys or backends), which only TorchRL knows how to step."""
+    if not isinstance(env, TransformedEnv) or env.batch_dims != 1:
+        return None
+    transforms = list(env.transform) if isinstance(env.transform, Compose) else [env.transform]
+    if tuple(type(t) for t in transforms) != TRANSFORMS or transforms[1].max_steps is not None:
+        return None
+    keys = set(env.observation_spec.keys(True, True)), env.reward_keys, set(env.done_keys)
+    if keys != (OBSERVATION_KEYS, ["reward"], {"done", "terminated", "truncated"}):
+        return None
+    base = env.base_env
+    return base if isinstance(base, EnvPoolEnv) else VectorCopies.of(base)
 
 
 def observation_size(env: EnvBase, key: str = "observation") -> int:

@@ -39,7 +39,9 @@ class EnvPoolEnv(EnvBase):
     copy stepped without a reset stays as it ended (its last observation, reward 0, done).
     Specs are gymnasium's declaration of the same id (one gymnasium copy is built for them).
     Copy ``i`` is seeded ``seed + i`` when the pool is built; :meth:`set_seed` rebuilds it.
-    ``threads``: EnvPool's worker threads (at most one per copy).
+    ``threads``: EnvPool's worker threads (at most one per copy). :meth:`reset_copies` and
+    :meth:`step_copies` are the same resets and steps on NumPy arrays (what rlpipe's lean
+    collection, :mod:`rlpipe.algos.collectors`, steps).
     """
 
     def __init__(
@@ -97,21 +99,19 @@ class EnvPoolEnv(EnvBase):
         self.pool = self.make_pool(start + np.arange(self.batch_size[0]))
         self._live[:] = False  # a new pool: every copy needs a reset
 
-    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs: Any) -> TensorDictBase:
-        mask = None if tensordict is None else tensordict.get("_reset", None)
-        if mask is None:
-            ids = self.pool.all_env_ids
-        else:
-            ids = np.flatnonzero(mask.reshape(-1).cpu().numpy()).astype(np.int32)
+    def reset_copies(self, mask: np.ndarray | None = None) -> np.ndarray:
+        """Start new episodes in the copies ``mask`` selects (None: all of them); the
+        observations of every copy (the others' as they were)."""
+        ids = self.pool.all_env_ids if mask is None else np.flatnonzero(mask).astype(np.int32)
         if len(ids):
             obs, info = self.pool.reset(env_id=ids)
             self._obs[info["env_id"]] = obs
         self._live[ids], self._terminated[ids], self._truncated[ids] = True, False, False
-        no = torch.zeros((*self.batch_size, 1), dtype=torch.bool)
-        return self._output(observation=self._obs.copy(), done=no, terminated=no, truncated=no)
+        return self._obs.copy()
 
-    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        action = tensordict.get("action").cpu().numpy()
+    def step_copies(self, action: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Step the copies in an episode with their rows of ``action``; every copy's
+        observation, reward, terminated and truncated (a finished copy's as it ended, reward 0)."""
         if self._live.all():
             obs, reward, terminated, truncated, info = self.pool.step(action)
         else:  # finished copies wait for their reset: EnvPool would autoreset them
@@ -122,11 +122,21 @@ class EnvPoolEnv(EnvBase):
         self._obs[ids], rewards[ids] = obs, reward
         self._terminated[ids], self._truncated[ids] = terminated, truncated
         self._live[ids] = ~(terminated | truncated)
-        term, trunc = (
-            torch.from_numpy(x.copy())[:, None] for x in (self._terminated, self._truncated)
+        return self._obs.copy(), rewards, self._terminated.copy(), self._truncated.copy()
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs: Any) -> TensorDictBase:
+        mask = None if tensordict is None else tensordict.get("_reset", None)
+        obs = self.reset_copies(None if mask is None else mask.reshape(-1).cpu().numpy())
+        no = torch.zeros((*self.batch_size, 1), dtype=torch.bool)
+        return self._output(observation=obs, done=no, terminated=no, truncated=no)
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        obs, rewards, terminated, truncated = self.step_copies(
+            tensordict.get("action").cpu().numpy()
         )
+        term, trunc = (torch.from_numpy(x)[:, None] for x in (terminated, truncated))
         return self._output(
-            observation=self._obs.copy(),
+            observation=obs,
             reward=torch.from_numpy(rewards).unsqueeze(-1),
             done=term | trunc,
             terminated=term,

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import gymnasium as gym
+import numpy as np
 from gymnasium.envs.registration import load_env_creator
 from gymnasium.vector import AutoresetMode
 from torchrl.envs import GymWrapper
@@ -12,7 +13,7 @@ from rlpipe.config import EnvConfig
 from rlpipe.envs import cartpole  # noqa: F401  (registers rlpipe/CartPole*-v0 with gymnasium)
 from rlpipe.errors import RlpipeError
 
-__all__ = ["SUPPORTED_SPACES", "gymnasium_env", "vector_env"]
+__all__ = ["SUPPORTED_SPACES", "VectorCopies", "gymnasium_env", "vector_env"]
 
 SUPPORTED_SPACES = (
     gym.spaces.Box,
@@ -101,3 +102,35 @@ def vector_env(base: object) -> gym.vector.VectorEnv | None:
     # ``unwrapped`` is the vector env itself (under any vector wrappers)
     venv = base.unwrapped if isinstance(base, GymWrapper) else None
     return venv if isinstance(venv, gym.vector.VectorEnv) else None
+
+
+class VectorCopies:
+    """The copies of a :func:`gymnasium_env` env stepped on NumPy arrays, as TorchRL's
+    ``GymWrapper`` steps them: the same calls on the same vector env (what rlpipe's lean
+    collection, :mod:`rlpipe.algos.collectors`, steps), so the same seeds give the same
+    episodes."""
+
+    def __init__(self, base: GymWrapper) -> None:
+        self.venv = base._env  # what GymWrapper steps (it keeps it private)
+
+    @classmethod
+    def of(cls, base: object) -> VectorCopies | None:
+        """The copies of ``base`` when it is a :func:`gymnasium_env` env (autoreset disabled)."""
+        if type(base) is not GymWrapper:
+            return None
+        mode = getattr(base._env, "autoreset_mode", None)
+        return cls(base) if mode == AutoresetMode.DISABLED else None
+
+    def reset_copies(self, mask: np.ndarray | None = None) -> np.ndarray:
+        """Start new episodes in the copies ``mask`` selects (None: all of them, as a full reset
+        does); the observations of every copy."""
+        if mask is None:
+            obs, _ = self.venv.reset()
+        else:
+            obs, _ = self.venv.reset(options={"reset_mask": mask})
+        return obs
+
+    def step_copies(self, action: np.ndarray) -> tuple[np.ndarray, ...]:
+        """One step of every copy; their observations, rewards, terminated and truncated."""
+        obs, reward, terminated, truncated, _ = self.venv.step(action)
+        return obs, reward, terminated, truncated

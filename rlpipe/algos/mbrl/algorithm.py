@@ -89,7 +89,7 @@ class MBRL(EnvAlgorithm):
 
     Each :meth:`train_step` collects ``cfg.frames_per_batch`` frames (rounded up to whole steps
     of the env's copies) with the MPC planner (uniformly random actions until the first fit,
-    which comes once ``cfg.warmup_frames`` are collected) through TorchRL's ``Collector``, stores
+    which comes once ``cfg.warmup_frames`` are collected) through :meth:`collect`, stores
     the transitions in a ``ReplayBuffer`` (a random ``cfg.validation_fraction`` of them marked for
     validation), and, once warm-up is done, runs ``cfg.fit_steps`` Adam steps on the dynamics
     ensemble, reward and termination models and logs their validation losses. The greedy
