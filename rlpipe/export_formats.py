@@ -52,8 +52,9 @@ Actions = Callable[[torch.Tensor], torch.Tensor]  # a loaded file, as observatio
 
 @dataclass
 class ExportResult:
-    """What :func:`export_policy` wrote: the file, its format and spec, and on how many
-    observations it was checked."""
+    """What :func:`export_policy` wrote.
+
+    The file, its format and spec, and on how many observations it was checked."""
 
     path: Path
     format: str
@@ -88,7 +89,9 @@ def export_policy(
     allow_env_import: bool = False,
     network: nn.Module | None = None,
 ) -> ExportResult:
-    """Write ``run_dir``'s greedy policy (its newest checkpoint; ``"best"``, or a file name in
+    """Write a trained run's greedy policy as one standalone file.
+
+    ``run_dir``'s policy (its newest checkpoint; ``"best"``, or a file name in
     its ``checkpoints/``) as one ``format`` file at ``out`` (default:
     ``<run_dir>/export/policy-<checkpoint><suffix>``), after checking that the file, loaded
     back, takes the run's actions on ``observations`` observations sampled (``seed``) from the

@@ -192,8 +192,10 @@ BUILDERS: dict[str, Callable[[TensorDictModuleBase], nn.Module]] = {
 
 
 def greedy_policy(algo: Algorithm) -> nn.Module:
-    """A plain ``nn.Module`` mapping raw float32 observations ``[B, obs]`` to the greedy actions
-    ``algo.policy`` takes in evaluation: built from a copy of the policy (later training does
+    """The algorithm's greedy policy as a plain ``nn.Module``.
+
+    It maps raw float32 observations ``[B, obs]`` to the greedy actions ``algo.policy`` takes in
+    evaluation: built from a copy of the policy (later training does
     not change it), in eval mode, its parameters without gradients. MBRL: see
     :class:`FixedNoisePlanner`."""
     name = algo.cfg.name
