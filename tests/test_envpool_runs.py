@@ -127,7 +127,7 @@ ALGOS = {
 def test_every_algorithm_trains_on_envpool_from_the_command_line(rlpipe_cli, tmp_path, algo):
     proc = rlpipe_cli(*TINY, f"algo={algo}", *ALGOS[algo], "env.backend=envpool")
     assert proc.returncode == 0, proc.stderr
-    assert "rlpipe: env backend envpool (env.backend=envpool)" in proc.stdout
+    assert "rlpipe: env backend envpool (env.backend=envpool" in proc.stdout
     config = yaml.safe_load((tmp_path / "run" / "config.yaml").read_text())
     assert config["env"]["backend"] == "envpool"
 

@@ -124,6 +124,8 @@ def resolve_backend(cfg: EnvConfig, recorded: str | None = None) -> tuple[EnvCon
         why = f"auto: {ENVPOOL_DIFFERS[cfg.id]}; env.backend=envpool to use it anyway"
     elif backend == "envpool":
         why = f"auto: EnvPool {envpool_version()} runs {cfg.id}; env.backend=gymnasium to change"
+    elif cfg.id not in ENVPOOL_IDS:  # the usual case for an env of one's own: said briefly
+        why = f"auto: EnvPool does not run {cfg.id}"
     else:
         why = f"auto: {_why_not_envpool(cfg)}"
     return replace(cfg, backend=backend), f"env backend {backend} ({why})"
