@@ -98,6 +98,11 @@ class AlgoConfig:
         check_run_keys(self, "algo.")
         check_rules(self, "algo.")
 
+    def for_copies(self, copies: int) -> AlgoConfig:
+        """This config as it runs on ``copies`` env copies stepped together (unchanged here;
+        an algorithm whose batches round up to whole steps of the copies says what follows)."""
+        return self
+
 
 ENV_BACKENDS = ("auto", "gymnasium", "envpool")
 
@@ -201,12 +206,15 @@ class Config:
 
     def resolved(self) -> Config:
         """This config with every null run key taken from ``algo`` (``total_frames`` may stay
-        null: the algorithm's own budget of epochs or iterations then ends the run), and
-        ``algo``'s run keys set to the result."""
+        null: the algorithm's own budget of epochs or iterations then ends the run), ``algo``'s
+        run keys set to the result, and ``algo`` as it runs on ``env.num_envs`` copies
+        (:meth:`AlgoConfig.for_copies`): what ``config.yaml`` records."""
         own = {key: getattr(self.algo, key) for key in RUN_KEYS if getattr(self, key) is None}
         run = replace(self, **own)
-        # the algorithm sees the run's keys too (e.g. a schedule spanning total_frames)
-        return replace(run, algo=replace(self.algo, **{key: getattr(run, key) for key in RUN_KEYS}))
+        # the algorithm sees the run's keys too (e.g. a schedule spanning total_frames), and
+        # what its batches become on the env's copies
+        algo = replace(self.algo, **{key: getattr(run, key) for key in RUN_KEYS})
+        return replace(run, algo=algo.for_copies(self.env.num_envs))
 
 
 # top-level keys that do not decide a run's results: its length and cadences, logging,

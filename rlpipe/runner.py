@@ -16,7 +16,7 @@ from torchrl.envs import EnvBase
 from torchrl.record.loggers import Logger
 
 from rlpipe import faults
-from rlpipe.algos.base import EPISODE_RETURN, Algorithm, Metrics
+from rlpipe.algos.base import EPISODE_FRAMES, EPISODE_RETURN, Algorithm, Metrics
 from rlpipe.budget import check_budget, no_evaluation_inside, spent
 from rlpipe.cadence import Cadence, Window
 from rlpipe.config import Config, config_to_dict
@@ -213,6 +213,7 @@ class Runner:
                     self.save()
                     self.algo.restart_episodes()  # as a run resumed from this checkpoint does
             self._evaluate()
+            bar.show(self._last_return, self.last_eval)  # the bar ends on the final evaluation
             if signals.received is not None:
                 raise Interrupted(signals.received, self.algo.frames, self.save())
             self.save()
@@ -262,6 +263,7 @@ class Runner:
         logged first, so the CSVs hold every row up to the checkpoint's frames; ``interrupted``
         (a signal's checkpoint where no checkpoint was due): they are kept in the checkpoint
         instead, so that the resumed run logs the rows an uninterrupted one does."""
+        self._check_finite()  # no checkpoint of a diverged policy
         if self._window.sums and not interrupted:
             self._flush()
         return self.store.save_checkpoint(self._state(), self.algo.frames)
@@ -328,10 +330,16 @@ class Runner:
         self._log({**scalars, **self._elapsed(now)})
         self._window_start, self._window_frames = now, frames
 
-    def _check_finite(self, metrics: Metrics) -> None:
-        bad = [k for k in self.algo.finite_keys if k in metrics and not _all_finite(metrics[k])]
-        if not bad and not all(bool(p.isfinite().all()) for p in self.algo.policy.parameters()):
+    def _check_finite(self, metrics: Metrics | None = None) -> None:
+        """Raise :class:`Diverged` on a non-finite metric of the iteration (every iteration) or,
+        with ``metrics`` None, a non-finite policy parameter (before each checkpoint and
+        evaluation: a non-finite step shows in the next iteration's loss anyway)."""
+        if metrics is not None:
+            bad = [k for k in self.algo.finite_keys if k in metrics and not _all_finite(metrics[k])]
+        elif not all(bool(p.isfinite().all()) for p in self.algo.policy.parameters()):
             bad = ["policy parameters"]
+        else:
+            bad = []
         if bad:
             raise Diverged(
                 f"training diverged at {self.algo.frames:,} frames: {bad[0]} is not finite; "
@@ -340,11 +348,16 @@ class Runner:
             )
 
     def _record(self, metrics: Metrics) -> None:
-        """Log per-event lists row by row; add scalars to the logging window."""
+        """Log per-event lists row by row (episodes at the frame they ended, where the algorithm
+        says it); add scalars to the logging window."""
+        ended = metrics.get(EPISODE_FRAMES)
         for key, value in metrics.items():
+            if key == EPISODE_FRAMES:
+                continue
             if isinstance(value, list):
-                for item in value:
-                    self._log({key: item})
+                steps = ended if ended is not None and len(ended) == len(value) else None
+                for i, item in enumerate(value):
+                    self._log({key: item}, None if steps is None else steps[i])
                 if key == EPISODE_RETURN and value:
                     self._last_return = value[-1]
             else:
@@ -352,6 +365,7 @@ class Runner:
 
     def _evaluate(self) -> None:
         """Evaluate and log; a signal aborts it (it then runs first when the run resumes)."""
+        self._check_finite()
         start = time.perf_counter()
         if self.eval_seed is not None:
             self.eval_env.set_seed(self.eval_seed)
@@ -382,12 +396,14 @@ class Runner:
         self._elapsed_at = self.algo.frames
         return {"time/elapsed": now - self._start}
 
-    def _log(self, scalars: dict[str, float]) -> None:
+    def _log(self, scalars: dict[str, float], step: int | None = None) -> None:
+        """Log ``scalars`` at ``step`` frames (default: the frames so far)."""
         if self.logger is None:
             return
+        step = self.algo.frames if step is None else step
         try:
             for key, value in scalars.items():
-                self.logger.log_scalar(key, value, step=self.algo.frames)
+                self.logger.log_scalar(key, value, step=step)
         except OSError as err:
             raise RlpipeError(
                 f"cannot write metrics in {self.run_dir}: {err.strerror or err}; free some disk "

@@ -34,6 +34,9 @@ Metrics = dict[str, float | list[float]]
 EPISODE_RETURN = "train/episode_return"  # one value per finished training episode
 EPISODE_LENGTH = "train/episode_length"
 LOSS = "train/loss"
+# the frame each finished training episode ended at, in the order of the episodes' values: the
+# step of their rows (not logged itself)
+EPISODE_FRAMES = "train/episode_frame"
 # what a replay buffer keeps of each transition (DQN, SAC)
 TRANSITION_KEYS = (
     "observation",
@@ -175,14 +178,25 @@ class Algorithm:
         )
 
 
-def episode_metrics(batch: TensorDictBase) -> Metrics:
-    """Returns and lengths of the episodes that ended inside a collected batch."""
+def episode_metrics(batch: TensorDictBase, ended_by: int | None = None) -> Metrics:
+    """Returns and lengths of the episodes that ended inside a collected batch; with
+    ``ended_by`` (the frames counted once the ``[env copies, steps]`` batch is), also the frame
+    each ended at (:data:`EPISODE_FRAMES`), the episodes in the order they ended."""
     done = batch["next", "done"]
     if not bool(done.any()):
         return {}
+    returns = batch["next", "episode_reward"][done]
+    lengths = batch["next", "step_count"][done].float()
+    if ended_by is None or batch.ndim != 2:
+        return {EPISODE_RETURN: returns.tolist(), EPISODE_LENGTH: lengths.tolist()}
+    copies, steps = batch.shape
+    behind = torch.arange(steps - 1, -1, -1, device=done.device).expand(copies, steps)
+    frames = (ended_by - behind * copies)[done.reshape(copies, steps)]
+    order = torch.argsort(frames, stable=True)
     return {
-        EPISODE_RETURN: batch["next", "episode_reward"][done].tolist(),
-        EPISODE_LENGTH: batch["next", "step_count"][done].float().tolist(),
+        EPISODE_RETURN: returns[order].tolist(),
+        EPISODE_LENGTH: lengths[order].tolist(),
+        EPISODE_FRAMES: frames[order].tolist(),
     }
 
 

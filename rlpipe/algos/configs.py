@@ -4,7 +4,8 @@ prints ``--help``) before torch loads; each algorithm's module re-exports its ow
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import math
+from dataclasses import dataclass, field, replace
 from typing import Any, ClassVar
 
 from rlpipe.config import AlgoConfig, checked
@@ -50,6 +51,16 @@ class OffPolicyConfig(AlgoConfig):
             self.buffer_size >= self.batch_size,
             f"algo.buffer_size ({self.buffer_size}) must be >= algo.batch_size ({self.batch_size})",
         )
+
+    def for_copies(self, copies: int) -> OffPolicyConfig:
+        """A batch holds whole steps of the env's copies: ``frames_per_batch`` rounds up to a
+        multiple of ``copies`` and ``updates_per_batch`` scales with it, so the gradient steps
+        per frame stay what the config says (e.g. 4 frames and 4 updates on 8 copies: 8 and 8)."""
+        frames = math.ceil(self.frames_per_batch / copies) * copies
+        if frames == self.frames_per_batch:
+            return self
+        updates = round(self.updates_per_batch * frames / self.frames_per_batch)
+        return replace(self, frames_per_batch=frames, updates_per_batch=updates)
 
 
 @dataclass

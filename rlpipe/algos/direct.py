@@ -72,7 +72,7 @@ class DirectDQNLoss(DQNLoss):
     categorical action space, TorchRL's TD(0) value estimator) whose :meth:`forward` computes
     what ``DQNLoss.forward`` computes: the chosen action's value, double DQN's online argmax and
     target value or the target's max, ``r + γ^k (1 - terminated) V'``, the distance loss, the
-    ``td_error`` priority."""
+    ``td_error`` priority; and ``q_mean``, the mean value of the chosen actions (for logging)."""
 
     def __init__(self, value_network: nn.Module, **kwargs) -> None:
         super().__init__(value_network, **kwargs)
@@ -107,7 +107,8 @@ class DirectDQNLoss(DQNLoss):
         weights = None
         if self.use_prioritized_weights in (True, "auto"):
             weights = tensordict.get(self.tensor_keys.priority_weight, None)
-        return TensorDict(loss=self._reduce_loss(loss, tensordict=tensordict, weights=weights))
+        loss = self._reduce_loss(loss, tensordict=tensordict, weights=weights)
+        return TensorDict(loss=loss, q_mean=chosen.detach().mean())
 
 
 def td0_target(loss: nn.Module, tensordict: TensorDictBase, next_value: torch.Tensor):
@@ -129,7 +130,8 @@ class DirectSACLoss(SACLoss):
     what ``SACLoss.forward`` computes, drawing its random actions in the same order: the target
     ``r + γ (1 - terminated) (min Q'(s', a') - α log π(a'|s'))``, the critics' summed distance
     losses and ``td_error``, the actor's ``α log π(a|s) - min Q(s, a)`` through critics held
-    fixed, and the entropy coefficient's loss."""
+    fixed, and the entropy coefficient's loss; and ``loss_qvalues``, each critic's distance loss
+    (for logging)."""
 
     def __init__(self, actor_network: nn.Module, qvalue_network: nn.Module, **kwargs) -> None:
         super().__init__(actor_network, qvalue_network, **kwargs)
@@ -174,6 +176,7 @@ class DirectSACLoss(SACLoss):
             target = td0_target(self, tensordict, next_value).squeeze(-1)
         predicted = torch.stack([q(obs, action) for q in critics]).squeeze(-1)
         loss_q = distance_loss(predicted, target.expand_as(predicted), self.loss_function)
+        each = loss_q.detach().mean(-1)  # of each critic, for logging
         weights = self._maybe_get_priority_weight(tensordict)
         loss_q = self._reduce_loss(loss_q.sum(0), tensordict=tensordict, weights=weights)
         new_action, log_prob = self._act(actor, obs)
@@ -193,6 +196,7 @@ class DirectSACLoss(SACLoss):
             loss_alpha=loss_alpha,
             alpha=alpha,
             entropy=-log_prob.mean(),
+            loss_qvalues=each,
         )
 
 

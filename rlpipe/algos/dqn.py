@@ -139,7 +139,8 @@ class DQN(OffPolicy):
         return stored.select(*TRANSITION_KEYS, "steps_to_next_obs").reshape(-1)
 
     def loss_of(self, sample: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-        return self.loss(sample)["loss"], {}
+        out = self.loss(sample)
+        return out["loss"], {"train/q_mean": out["q_mean"]}
 
     def clip_gradients(self) -> None:
         torch.nn.utils.clip_grad_value_(self.loss.parameters(), self.cfg.grad_clip_value)

@@ -93,7 +93,7 @@ class OffPolicy(EnvAlgorithm):
         self.follow_schedules()
         self.buffer.extend(self.transitions(batch))
         metrics = self.collect_metrics()
-        metrics.update(episode_metrics(batch))
+        metrics.update(episode_metrics(batch, self.frames))
         if len(self.buffer) < max(cfg.learning_starts, cfg.batch_size):
             return metrics
         losses, scalars = [], {}

@@ -168,7 +168,7 @@ class PPO(EnvAlgorithm):
         self.sync_collector()
         means = torch.stack(steps).mean(0).tolist()  # of the iteration's gradient steps
         metrics: Metrics = dict(zip((LOSS, *LOGGED.values()), means, strict=True))
-        metrics.update(episode_metrics(batch))
+        metrics.update(episode_metrics(batch, self.frames))
         return metrics
 
     def _minibatches(self, data: TensorDictBase) -> list[TensorDictBase]:

@@ -113,4 +113,12 @@ class SAC(OffPolicy):
     def loss_of(self, sample: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         out = self.loss(sample)
         loss = out["loss_actor"] + out["loss_qvalue"] + out["loss_alpha"]
-        return loss, {"train/alpha": out["alpha"]}
+        q1, q2 = out["loss_qvalues"].unbind(0)
+        return loss, {
+            "train/alpha": out["alpha"],
+            "train/actor_loss": out["loss_actor"],
+            "train/q1_loss": q1,
+            "train/q2_loss": q2,
+            "train/alpha_loss": out["loss_alpha"],
+            "train/entropy": out["entropy"],
+        }

@@ -178,7 +178,7 @@ class MBRL(EnvAlgorithm):
             batch = self.collect(target - collected)
             self._store(batch)
             collected += batch.numel()
-            for key, values in episode_metrics(batch).items():
+            for key, values in episode_metrics(batch, self.frames).items():
                 metrics.setdefault(key, []).extend(values)
         if collected < target:  # stopped: the next iteration fits on all the data
             return metrics
