@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import math
 from dataclasses import dataclass
 
@@ -111,6 +112,11 @@ def image_transforms(cfg: EnvConfig, spec: TensorSpec) -> list[Transform]:
     if cfg.grayscale:
         out.append(GrayScale(in_keys=keys))
     if cfg.resize is not None:
+        check(
+            importlib.util.find_spec("torchvision") is not None,
+            "env.resize uses TorchRL's Resize, which needs torchvision: pip install "
+            "torch==2.13.0 torchvision, or drop env.resize",
+        )
         height, width = cfg.resize
         out.append(Resize(width, height, in_keys=keys))
     stack = cfg.frame_stack or IMAGE_FRAME_STACK
