@@ -69,7 +69,6 @@ def test_make_env_gives_dict_envs_one_observation_on_the_lean_path(mode):
     [
         ({}, (12, 16, 16)),
         ({"grayscale": True, "frame_stack": 2}, (2, 16, 16)),
-        ({"resize": [8, 10], "frame_stack": 1}, (3, 8, 10)),
     ],
 )
 def test_images_become_stacked_chw_floats_in_0_1(options, shape):
