@@ -105,6 +105,7 @@ class AlgoConfig:
 
 
 ENV_BACKENDS = ("auto", "gymnasium", "envpool")
+DICT_OBS = ("flatten", "keys")
 
 
 @dataclass
@@ -120,9 +121,21 @@ class EnvConfig:
     # auto: EnvPool where it is installed and runs the id (a run records the one it used),
     # else gymnasium; gymnasium; envpool
     backend: str = checked("auto", choices=ENV_BACKENDS)
+    # observations (docs/api.md "Observations"): a Dict's keys as one flat vector; flatten: the
+    # networks see it whole; keys: they encode each key apart (an MLP each, a CNN per image)
+    dict_obs: str = checked("flatten", choices=DICT_OBS)
+    # images (3-D uint8, HWC): frames stacked (null: 4), resized to [height, width] (null: as
+    # they come), to one grey channel
+    frame_stack: int | None = checked(None, "optional_at_least_one")
+    resize: list[int] | None = None
+    grayscale: bool = False
 
     def __post_init__(self) -> None:
         check_rules(self, "env.")
+        check(
+            self.resize is None or (len(self.resize) == 2 and min(self.resize) >= 1),
+            f"env.resize must be [height, width] of positive sizes or null, got {self.resize}",
+        )
 
 
 LOGGER_BACKENDS = ("csv", "tensorboard", "wandb", "mlflow", "none")

@@ -30,6 +30,7 @@ import torch
 from torch import nn
 
 from rlpipe import __version__
+from rlpipe.envs.observations import dict_observation
 from rlpipe.errors import RlpipeError, check
 from rlpipe.files import check_writable, write_atomic
 from rlpipe.greedy import FixedNoisePlanner, greedy_policy, policy_actions
@@ -142,7 +143,7 @@ def export_policy(
 def _spec(loaded: LoadedRun, format: str, module: nn.Module) -> tuple[gym.spaces.Box, dict]:
     """The env's observation space, and the spec a file carries."""
     cfg = loaded.cfg
-    env = gym.make(cfg.env.id, **cfg.env.kwargs)
+    env = dict_observation(gym.make(cfg.env.id, **cfg.env.kwargs))  # a Dict: its vector
     observation_space, action_space = env.observation_space, env.action_space
     env.close()
     if isinstance(action_space, gym.spaces.Discrete):

@@ -199,6 +199,13 @@ def greedy_policy(algo: Algorithm) -> nn.Module:
     not change it), in eval mode, its parameters without gradients. MBRL: see
     :class:`FixedNoisePlanner`."""
     name = algo.cfg.name
+    observation = getattr(algo, "observation", None)
+    if observation is not None and observation.image:
+        raise RlpipeError(
+            f"cannot export this {name} policy: it sees images through make_env's image "
+            "transforms and frame stacking, which a standalone file does not carry; evaluate it "
+            "with python -m rlpipe.evaluate, or save its network (algo.policy) with torch.save"
+        )
     if name not in BUILDERS:
         raise RlpipeError(
             f"cannot export algo={name}: rlpipe knows the greedy policy of "

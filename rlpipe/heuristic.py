@@ -18,7 +18,7 @@ from torch import nn
 from torchrl.data import TensorSpec
 from torchrl.envs import EnvBase
 
-from rlpipe.envs import is_discrete, observation_size
+from rlpipe.envs import is_discrete, observation_of
 from rlpipe.errors import check
 
 # BipedalWalker-v3 observation layout: hull angle, its angular speed, x and y speed, then per
@@ -166,7 +166,7 @@ def random_policy(env: EnvBase) -> TensorDictModule:
 def _check_walker(env: EnvBase, name: str) -> None:
     check(
         not is_discrete(env)
-        and observation_size(env) == 24
+        and observation_of(env).shape == (24,)
         and env.action_spec_unbatched.shape == (4,),
         f"policy={name} is a hand-written BipedalWalker controller: it needs BipedalWalker's "
         "24 observations and 4 torques (env=bipedal or bipedal_hardcore); use policy=random here",

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib
+import math
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any, Protocol, runtime_checkable
 
@@ -21,7 +22,7 @@ from torchrl.data import Bounded
 from torchrl.envs import EnvBase
 from torchrl.modules import MLP, IndependentNormal, ProbabilisticActor
 
-from rlpipe.envs import is_discrete, num_actions, observation_size
+from rlpipe.envs import is_discrete, num_actions, observation_of
 from rlpipe.errors import RlpipeError, check
 
 add_custom_mapping("sigmoid", torch.sigmoid)  # the REINFORCE notebook's std in (0, 1)
@@ -74,7 +75,7 @@ SCALES = ("sigmoid", "free")
 
 def make_policy(
     env: EnvBase,
-    network: Callable[[int, int, str], nn.Module],
+    network: Callable[[int | tuple[int, ...], int, str], nn.Module],
     *,
     scale: str = "sigmoid",
     log_prob: bool = False,
@@ -82,7 +83,8 @@ def make_policy(
 ) -> tuple[TensorDictModuleBase, ProbabilisticActor, str]:
     """The stochastic policy, its distribution module and the key holding what its
     log-probability is taken of; ``network(in_features, out_features, outputs)`` builds its
-    network; ``log_prob``: the sampling policy also writes the sample's log-probability (PPO's
+    network (``in_features``: the observation's size, or its shape if it is no flat vector);
+    ``log_prob``: the sampling policy also writes the sample's log-probability (PPO's
     old policy); ``algo`` names the algorithm in errors.
 
     Discrete actions: a Categorical over logits, sampled into ``action``. Box actions: a
@@ -91,7 +93,7 @@ def make_policy(
     bounds. In deterministic mode: the argmax, or the clipped mean.
     """
     spec = env.action_spec_unbatched
-    n_obs = observation_size(env)
+    n_obs = observation_of(env).in_features
     if is_discrete(env):
         net = network(n_obs, num_actions(env), "one logit per action")
         module = TensorModule(net, ["observation"], ["logits"])
@@ -194,38 +196,40 @@ def user_network(
     network: nn.Module | None,
     spec: Mapping[str, Any] | None,
     *,
-    in_features: int,
+    in_features: int | Sequence[int],
     out_features: int,
     outputs: str,
 ) -> nn.Module | None:
     """The network a user brought in place of an algorithm's default, or None.
 
     ``network``: a module (Python); ``spec``: ``algo.network``, a Hydra-style
-    ``{"_target_": "my_pkg.MyNet", **kwargs}`` built with ``in_features`` and ``out_features``
-    (unless it sets them). Either way the network must map a batch of ``in_features`` inputs to
-    ``out_features`` outputs (``outputs`` says what they are, for the error).
+    ``{"_target_": "my_pkg.MyNet", **kwargs}`` built with ``in_features`` (an observation's
+    shape: its number of values) and ``out_features`` (unless it sets them). Either way the
+    network must map a batch of inputs of ``in_features`` (a size, or a shape such as an image's
+    ``(C, H, W)``) to ``out_features`` outputs (``outputs`` says what they are, for the error).
     """
+    shape = (in_features,) if isinstance(in_features, int) else tuple(in_features)
     spec = network_spec(network, spec)
     if spec:
         network = instantiate(
-            spec, "algo.network", in_features=in_features, out_features=out_features
+            spec, "algo.network", in_features=math.prod(shape), out_features=out_features
         )
     if network is None:
         return None
     name = type(network).__name__
     check(isinstance(network, nn.Module), f"algo.network must build a torch nn.Module, got {name}")
     device = next((p.device for p in network.parameters()), torch.device("cpu"))
+    inputs = f"inputs of {'size ' + str(shape[0]) if len(shape) == 1 else 'shape ' + str(shape)}"
     try:
         with torch.no_grad():
-            out = network(torch.zeros(2, in_features, device=device))
+            out = network(torch.zeros(2, *shape, device=device))
     except Exception as err:  # the user's module: any failure is theirs to see, in one line
         raise RlpipeError(
-            f"the network {name} fails on a batch of 2 inputs of size {in_features} "
-            f"({error_reason(err)})"
+            f"the network {name} fails on a batch of 2 {inputs} ({error_reason(err)})"
         ) from err
     check(
         isinstance(out, torch.Tensor) and out.shape == (2, out_features),
-        f"the network {name} maps a batch of 2 inputs of size {in_features} to "
+        f"the network {name} maps a batch of 2 {inputs} to "
         f"{tuple(out.shape) if isinstance(out, torch.Tensor) else type(out).__name__}; "
         f"this algorithm needs (2, {out_features}): {outputs}",
     )

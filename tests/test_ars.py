@@ -410,7 +410,7 @@ def test_divergence_hint_names_ars_settings():
 
 
 def test_non_flat_observation_is_rejected(image_env_id):
-    with pytest.raises(RlpipeError, match="flat vector observation"):
+    with pytest.raises(RlpipeError, match="flat vector observations"):
         ARS(partial(make_env, EnvConfig(id=image_env_id)), ARSConfig(workers=1))
 
 

@@ -94,6 +94,7 @@ PRESET_ENVS = {
     "mbrl_pendulum": "Pendulum-v1",
     "mbrl_cartpole": "rlpipe/CartPoleContinuous-v0",
     "ppo_cartpole": "CartPole-v1",
+    "ppo_minigrid_pixels": "rlpipe/MiniGrid-Empty-5x5-Pixels-v0",
     "sac_pendulum": "Pendulum-v1",
     "sac_bipedal": "BipedalWalker-v3",
 }

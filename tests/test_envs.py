@@ -67,7 +67,7 @@ def test_bad_kwargs_are_a_clear_error():
 
 def test_non_flat_observation_is_rejected(image_env_id):
     env = make_env(EnvConfig(id=image_env_id))
-    with pytest.raises(RlpipeError, match="flat vector observation"):
+    with pytest.raises(RlpipeError, match="flat vector observations"):
         observation_size(env)
 
 

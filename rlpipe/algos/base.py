@@ -20,7 +20,8 @@ from torchrl.objectives import LossModule
 
 from rlpipe.algos.collectors import CollectAction, make_collector
 from rlpipe.config import RUN_KEYS, AlgoConfig, Config, EnvConfig
-from rlpipe.envs import EnvFactory, make_env
+from rlpipe.encoders import encoded
+from rlpipe.envs import EnvFactory, Observation, make_env, observation_of
 from rlpipe.envs.backends import backend_of
 from rlpipe.errors import RlpipeError, check
 from rlpipe.models import mlp, object_record, user_network
@@ -225,17 +226,22 @@ class EnvAlgorithm(Algorithm):
     state_attrs: ClassVar[tuple[str, ...]] = ()
     activation: ClassVar[type[nn.Module]] = nn.ReLU  # of the default MLPs
 
+    observation: Observation  # what the networks see (set before ``_build``)
+
     def build(self) -> None:
         """One env from the factory (closed again if building fails), then ``_build(env)``."""
         with closing_on_error(self.env_factory()) as env:
+            self.observation = observation_of(env)
             self._build(env)
 
     def _build(self, env: EnvBase) -> None:
         raise NotImplementedError
 
-    def network(self, in_features: int, out_features: int, outputs: str) -> nn.Module:
-        """The user's network (``network=`` or ``cfg.network``, checked to map ``in_features``
-        to ``out_features``), else the default: an MLP with ``cfg.hidden_sizes``."""
+    def network(
+        self, in_features: int | tuple[int, ...], out_features: int, outputs: str
+    ) -> nn.Module:
+        """The user's network (``network=`` or ``cfg.network``, checked to map observations of
+        ``in_features``, a size or a shape, to ``out_features``), else :meth:`default_network`."""
         given = user_network(
             self.user_network,
             self.cfg.network,
@@ -245,7 +251,21 @@ class EnvAlgorithm(Algorithm):
         )
         if given is not None:
             return given
-        return mlp(in_features, out_features, self.cfg.hidden_sizes, self.activation)
+        return self.default_network(in_features, out_features)
+
+    def default_network(
+        self,
+        in_features: int | tuple[int, ...],
+        out_features: int,
+        hidden_sizes: list[int] | None = None,
+    ) -> nn.Module:
+        """An MLP (``hidden_sizes``, default ``cfg.hidden_sizes``) on a flat observation of
+        ``in_features``; on any other, the MLP after the observation's encoder
+        (:func:`rlpipe.encoders.encoded`: a CNN for images, one per key for Dict keys)."""
+        sizes = self.cfg.hidden_sizes if hidden_sizes is None else hidden_sizes
+        if self.observation.flat:
+            return mlp(int(in_features), out_features, sizes, self.activation)
+        return encoded(self.observation, lambda n: mlp(n, out_features, sizes, self.activation))
 
     def make_collector(
         self,

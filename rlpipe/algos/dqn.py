@@ -17,7 +17,7 @@ from rlpipe.algos.base import TRANSITION_KEYS, Metrics, batch_steps
 from rlpipe.algos.configs import DQNConfig
 from rlpipe.algos.direct import DirectDQNLoss, inner_network
 from rlpipe.algos.offpolicy import ForeachSoftUpdate, OffPolicy
-from rlpipe.envs import is_discrete, observation_size
+from rlpipe.envs import is_discrete
 from rlpipe.errors import RlpipeError, check
 from rlpipe.models import TensorModule
 
@@ -75,7 +75,7 @@ class DQN(OffPolicy):
             )
         spec = env.action_spec_unbatched.to(self.device)
         n = spec.space.n
-        net = self.network(observation_size(env), n, f"one Q-value per action ({n})")
+        net = self.network(self.observation.in_features, n, f"one Q-value per action ({n})")
         net = net.to(self.device)
         # TensorModule: a TensorDictModule without its per-call lookup (see its docstring)
         self.policy = QValueActor(TensorModule(net, ["observation"], ["action_value"]), spec=spec)

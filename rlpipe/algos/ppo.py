@@ -16,8 +16,9 @@ from rlpipe.algos.base import LOSS, EnvAlgorithm, Metrics, episode_metrics
 from rlpipe.algos.collectors import CollectAction
 from rlpipe.algos.configs import PPOConfig
 from rlpipe.algos.direct import LOG_SQRT_2PI, DirectPPOLoss, inner_network
-from rlpipe.envs import is_discrete, observation_size
-from rlpipe.models import make_policy, mlp
+from rlpipe.envs import is_discrete
+from rlpipe.errors import check
+from rlpipe.models import make_policy
 from rlpipe.normalizer import Normalizer
 
 
@@ -97,12 +98,17 @@ class PPO(EnvAlgorithm):
 
     def _build(self, env: EnvBase) -> None:
         cfg, device = self.cfg, self.device
-        self.normalizer = Normalizer(observation_size(env))  # the identity unless observed
+        check(
+            self.observation.flat or not cfg.normalize_observations,
+            "algo.normalize_observations=true standardises flat vector observations; this env's "
+            f"are of shape {self.observation.shape}: set algo.normalize_observations=false",
+        )
+        self.normalizer = Normalizer(self.observation.size)  # the identity unless observed
         self.policy, actor, sample_key = make_policy(
             env, self._normalized, scale="free", log_prob=True, algo="PPO"
         )
         critic = ValueOperator(
-            self._normalized(observation_size(env), 1, "the state's value", critic=True),
+            self._normalized(self.observation.in_features, 1, "the state's value", critic=True),
             in_keys=["observation"],
         )
         self.loss = DirectPPOLoss(  # ClipPPOLoss on the modules' own parameters
@@ -127,17 +133,23 @@ class PPO(EnvAlgorithm):
         self.make_collector(env, self.policy, cfg.frames_per_batch, act=act)
 
     def _normalized(
-        self, in_features: int, out_features: int, outputs: str, *, critic: bool = False
+        self,
+        in_features: int | tuple[int, ...],
+        out_features: int,
+        outputs: str,
+        *,
+        critic: bool = False,
     ) -> torch.nn.Module:
-        """The normaliser, then the actor's network (yours, or a tanh MLP) or the critic's."""
+        """The normaliser (flat vectors), then the actor's network (yours, or a tanh MLP after
+        the observation's encoder) or the critic's (an encoder of its own)."""
         if critic:
-            net = mlp(in_features, out_features, self.cfg.hidden_sizes, self.activation)
+            net = self.default_network(in_features, out_features)
         else:
             net = self.network(in_features, out_features, outputs)
         default = critic or (self.user_network is None and not self.cfg.network)
         if self.cfg.ortho_init and default:
             orthogonal_init(net, last_gain=1.0 if critic else 0.01)
-        return torch.nn.Sequential(self.normalizer, net)
+        return torch.nn.Sequential(self.normalizer, net) if self.observation.flat else net
 
     def train_step(self) -> Metrics:
         batch = self.collect()

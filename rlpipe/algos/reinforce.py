@@ -105,6 +105,7 @@ class Reinforce(EnvAlgorithm):
     def _build(self, env: EnvBase) -> None:
         cfg = self.cfg
         self.budget = cfg.epochs
+        n_obs = observation_size(env, "REINFORCE")
         self.policy, self._actor, self._sample_key = make_policy(
             env, self.network, algo="REINFORCE"
         )
@@ -113,7 +114,7 @@ class Reinforce(EnvAlgorithm):
         self.value: TensorModule | None = None
         self.state_attrs = ("policy", "optimizer")
         if cfg.baseline == "value":
-            net = mlp(observation_size(env), 1, cfg.value_hidden_sizes)
+            net = mlp(n_obs, 1, cfg.value_hidden_sizes)
             self.value = TensorModule(net, ["observation"], ["state_value"]).to(self.device)
             self._estimator = TD1Estimator(gamma=cfg.gamma, value_network=self.value)
             groups.append({"params": list(self.value.parameters()), "lr": cfg.value_lr})

@@ -19,7 +19,8 @@ from torchrl.modules import MLP, ProbabilisticActor, TanhNormal
 from rlpipe.algos.configs import SACConfig
 from rlpipe.algos.direct import DirectSACLoss, inner_network
 from rlpipe.algos.offpolicy import ForeachSoftUpdate, OffPolicy
-from rlpipe.envs import is_discrete, observation_size
+from rlpipe.encoders import EncodeFirst, encoder
+from rlpipe.envs import is_discrete
 from rlpipe.errors import RlpipeError
 from rlpipe.models import TensorModule
 
@@ -59,7 +60,7 @@ class SAC(OffPolicy):
                 f"{type(spec).__name__} of shape {tuple(spec.shape)}; pick a continuous env "
                 "(pendulum, bipedal, cartpole_continuous) or algo=dqn or algo=ppo"
             )
-        size, n_obs = spec.shape[0], observation_size(env)
+        size, n_obs = spec.shape[0], self.observation.in_features
         outputs = f"a mean and a pre-softplus std per action dimension ({size}), in that order"
         net = nn.Sequential(
             self.network(n_obs, 2 * size, outputs),
@@ -73,16 +74,16 @@ class SAC(OffPolicy):
             distribution_class=TanhNormal,
             distribution_kwargs={"low": spec.space.low, "high": spec.space.high},
         ).to(self.device)
-        qvalue = TensorModule(  # TorchRL's MLP concatenates its inputs: Q(s, a)
-            MLP(
-                in_features=n_obs + size,
-                out_features=1,
-                num_cells=cfg.hidden_sizes,
-                activation_class=nn.ReLU,
-            ),
-            ["observation", "action"],
-            ["state_action_value"],
-        ).to(self.device)
+        first, features = encoder(self.observation)  # an image's CNN, ...; a vector: none
+        critic = MLP(  # TorchRL's MLP concatenates its inputs: Q(s, a)
+            in_features=features + size,
+            out_features=1,
+            num_cells=cfg.hidden_sizes,
+            activation_class=nn.ReLU,
+        )
+        critic = critic if first is None else EncodeFirst(first, critic)
+        qvalue = TensorModule(critic, ["observation", "action"], ["state_action_value"])
+        qvalue = qvalue.to(self.device)
         self.loss = DirectSACLoss(  # SACLoss, its forward on plain tensors
             self.policy,
             qvalue,

@@ -22,18 +22,21 @@ from torchrl.envs import (
 from rlpipe.config import EnvConfig
 from rlpipe.envs.backends import backend_of
 from rlpipe.envs.envpool_env import EnvPoolEnv
-from rlpipe.envs.gymnasium_env import VectorCopies, gymnasium_env, vector_env
+from rlpipe.envs.gymnasium_env import VectorCopies, dict_layout, gymnasium_env, vector_env
+from rlpipe.envs.observations import Observation, image_transforms, observation_of
 from rlpipe.errors import RlpipeError
 
 __all__ = [
     "EnvCopies",
     "EnvFactory",
+    "Observation",
     "env_copies",
     "envpool_env",
     "episode_limit",
     "is_discrete",
     "make_env",
     "num_actions",
+    "observation_of",
     "observation_size",
     "sub_envs",
 ]
@@ -83,7 +86,11 @@ def make_env(
     ``reset_mask``). EnvPool: an :class:`~rlpipe.envs.envpool_env.EnvPoolEnv` with
     ``threads`` worker threads, which behaves the same. Either way ``DoubleToFloat``,
     ``StepCounter``, ``InitTracker`` and ``RewardSum`` (``episode_reward``) follow, and
-    actions of discrete spaces are integer indices (``Categorical`` spec).
+    actions of discrete spaces are integer indices (``Categorical`` spec). A Dict observation
+    is one vector (:class:`~rlpipe.envs.observations.DictObservation`); images get TorchRL's
+    image transforms and frame stacking after those
+    (:func:`~rlpipe.envs.observations.image_transforms`; such envs leave the lean collection
+    path for TorchRL's collector).
 
     ``vectorization`` (gymnasium only): ``"vector"`` is the id's own batched implementation
     (its gymnasium ``vector_entry_point``, which must support autoreset DISABLED, as rlpipe's
@@ -102,7 +109,11 @@ def make_env(
         base = gymnasium_env(
             cfg, n, device=device, render_mode=render_mode, vectorization=vectorization
         )
-    env = TransformedEnv(base, Compose(*(transform() for transform in TRANSFORMS)))
+    spec = base.observation_spec_unbatched.get("observation", None)
+    extra = [] if spec is None else image_transforms(cfg, spec)
+    env = TransformedEnv(base, Compose(*(transform() for transform in TRANSFORMS), *extra))
+    if cfg.dict_obs == "keys":  # what the networks' per-key encoders read
+        env.observation_layout = dict_layout(base)
     if seed is not None and not isinstance(base, EnvPoolEnv):  # EnvPool's is set at build
         env.set_seed(seed)
     return env
@@ -125,15 +136,18 @@ def env_copies(env: EnvBase) -> EnvCopies | None:
     return base if isinstance(base, EnvPoolEnv) else VectorCopies.of(base)
 
 
-def observation_size(env: EnvBase, key: str = "observation") -> int:
-    """Length of the flat observation vector; a clear error for image or dict observations."""
-    spec = env.observation_spec_unbatched
-    if key not in spec.keys() or len(spec[key].shape) != 1:
-        shapes = {k: tuple(v.shape) for k, v in spec.items(include_nested=True, leaves_only=True)}
+def observation_size(env: EnvBase, algo: str = "this algorithm") -> int:
+    """Length of the flat observation vector; one line naming what to do for an image (or any
+    other non-vector) observation, ``algo`` naming the algorithm that refuses it."""
+    observation = observation_of(env)
+    if not observation.flat:
+        what = "image" if observation.image else f"shape {observation.shape}"
         raise RlpipeError(
-            f"this algorithm needs a flat vector observation under {key!r}; the env gives {shapes}"
+            f"{algo} takes flat vector observations, but this env observes {what}: use algo=dqn, "
+            "algo=ppo or algo=sac (they encode images and Dict keys), or flatten the "
+            "observation (gymnasium.wrappers.FlattenObservation; env.dict_obs=flatten)"
         )
-    return int(spec[key].shape[0])
+    return observation.size
 
 
 def is_discrete(env: EnvBase) -> bool:

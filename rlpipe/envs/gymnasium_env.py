@@ -10,17 +10,20 @@ from gymnasium.vector import AutoresetMode
 from torchrl.envs import GymWrapper
 
 from rlpipe.config import EnvConfig
-from rlpipe.envs import cartpole  # noqa: F401  (registers rlpipe/CartPole*-v0 with gymnasium)
+from rlpipe.envs import (
+    cartpole,  # noqa: F401  (registers rlpipe/CartPole*-v0 with gymnasium)
+    minigrid,  # noqa: F401  (registers rlpipe/MiniGrid-*-Pixels-v0)
+)
+from rlpipe.envs.observations import KeySlice, dict_observation
 from rlpipe.errors import RlpipeError
 
-__all__ = ["SUPPORTED_SPACES", "VectorCopies", "gymnasium_env", "vector_env"]
+__all__ = ["SUPPORTED_SPACES", "VectorCopies", "dict_layout", "gymnasium_env", "vector_env"]
 
 SUPPORTED_SPACES = (
     gym.spaces.Box,
     gym.spaces.Discrete,
     gym.spaces.MultiDiscrete,
     gym.spaces.MultiBinary,
-    gym.spaces.Dict,
 )
 
 
@@ -34,7 +37,9 @@ def gymnasium_env(
 ) -> GymWrapper:
     """``num_envs`` copies of ``cfg.id`` in a gymnasium vector env with autoreset DISABLED,
     wrapped by TorchRL's ``GymWrapper`` (partial resets go through gymnasium's ``reset_mask``;
-    discrete actions are integer indices). ``vectorization``: see :func:`rlpipe.make_env`."""
+    discrete actions are integer indices; a Dict observation becomes one vector,
+    :class:`~rlpipe.envs.observations.DictObservation`). ``vectorization``: see
+    :func:`rlpipe.make_env`."""
     batched = vectorization != "sync" and _batched_entry_point(cfg.id)
     if vectorization == "vector" and not batched:
         raise RlpipeError(f"{cfg.id!r} has no vector implementation with autoreset disabled")
@@ -52,6 +57,7 @@ def gymnasium_env(
                 num_envs=num_envs,
                 vectorization_mode="sync",
                 vector_kwargs={"autoreset_mode": AutoresetMode.DISABLED},
+                wrappers=[dict_observation],  # a Dict observation as one vector
                 **kwargs,
             )
     except gym.error.Error as err:
@@ -102,6 +108,14 @@ def vector_env(base: object) -> gym.vector.VectorEnv | None:
     # ``unwrapped`` is the vector env itself (under any vector wrappers)
     venv = base.unwrapped if isinstance(base, GymWrapper) else None
     return venv if isinstance(venv, gym.vector.VectorEnv) else None
+
+
+def dict_layout(base: object) -> tuple[KeySlice, ...] | None:
+    """Where each key of a Dict observation lies in a :func:`gymnasium_env` env's vector (None:
+    its observations are no Dict)."""
+    venv = vector_env(base)
+    envs = venv.envs if isinstance(venv, gym.vector.SyncVectorEnv) else [None]
+    return getattr(envs[0], "layout", None)
 
 
 class VectorCopies:

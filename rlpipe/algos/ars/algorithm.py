@@ -124,7 +124,7 @@ def make_ars_policy(
 ) -> tuple[TensorDictSequential, Normalizer]:
     """Normaliser -> ``network`` (or ``cfg.network``; by default a linear map, zero-initialised
     as the notebook's, or an MLP) -> action head."""
-    size = observation_size(env)
+    size = observation_size(env, "ARS")
     spec = env.action_spec_unbatched
     if is_discrete(env) and isinstance(spec, Categorical):
         outputs, head = num_actions(env), ArgmaxAction()

@@ -115,7 +115,7 @@ class MBRL(EnvAlgorithm):
     def _build(self, env: EnvBase) -> None:
         cfg = self.cfg
         coder = action_coder(env, self.device)
-        self.model = self.world_model(observation_size(env), coder.size).to(self.device)
+        self.model = self.world_model(observation_size(env, "MBRL"), coder.size).to(self.device)
         planner = Planner(
             self.model,
             coder,
