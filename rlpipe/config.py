@@ -80,8 +80,9 @@ class AlgoConfig:
     # keys that do not decide the results (budgets, where rollouts run): left out of the
     # fingerprint that ties a run dir to one run (fingerprint below), like RUN_KEYS
     not_fingerprinted: ClassVar[tuple[str, ...]] = ()
-    # keys that shape the networks: a run fine-tuned from another (init_from) keeps its values
-    architecture: ClassVar[tuple[str, ...]] = ("network",)
+    # keys that shape the networks (those the config has): a run fine-tuned from another
+    # (init_from) keeps their values
+    architecture: ClassVar[tuple[str, ...]] = ("hidden_sizes", "network")
     # keys that shape the replay buffer and what it holds: init_buffer keeps the parent's values
     buffer_keys: ClassVar[tuple[str, ...]] = ()
 

@@ -98,9 +98,10 @@ def check_fits(cfg: Config, parent: Config) -> None:
 
 
 def _first_difference(keys: Iterable[str], ours: Any, theirs: Any) -> tuple[str, Any, Any] | None:
-    """The first of ``keys`` whose values differ, with ours and theirs (None: none does)."""
+    """The first of ``keys`` (those the configs have) whose values differ, with ours and theirs
+    (None: none does)."""
     for key in keys:
-        if getattr(ours, key) != getattr(theirs, key):
+        if hasattr(ours, key) and getattr(ours, key) != getattr(theirs, key):
             return key, getattr(ours, key), getattr(theirs, key)
     return None
 

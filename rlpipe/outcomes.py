@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import math
 import signal
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from rlpipe.errors import RlpipeError
 
@@ -41,3 +44,19 @@ class Interrupted(RlpipeError):
 
 class Diverged(RlpipeError):
     """A loss or a parameter became NaN or infinite; no checkpoint is written after it."""
+
+
+def not_finite(
+    metrics: Mapping[str, Any] | None, keys: Iterable[str], parameters: Iterable[Any]
+) -> str | None:
+    """What diverged: the first of ``keys`` whose value (a number or a list) in ``metrics`` is
+    not finite, or, with ``metrics`` None, ``"policy parameters"`` when a tensor of
+    ``parameters`` is not (None: all finite)."""
+    if metrics is None:
+        finite = all(bool(p.isfinite().all()) for p in parameters)
+        return None if finite else "policy parameters"
+    for key in keys:
+        value = metrics.get(key, 0.0)
+        if not all(math.isfinite(v) for v in (value if isinstance(value, list) else [value])):
+            return key
+    return None

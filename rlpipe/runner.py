@@ -23,7 +23,7 @@ from rlpipe.config import Config, config_to_dict
 from rlpipe.console import say
 from rlpipe.episodes import EvalResult, EvalStopped, evaluate
 from rlpipe.errors import RlpipeError, check
-from rlpipe.outcomes import Diverged, Interrupted, RunResult
+from rlpipe.outcomes import Diverged, Interrupted, RunResult, not_finite
 from rlpipe.progress import ProgressBar
 from rlpipe.runtime import rng_state, set_rng_state, set_threads
 from rlpipe.signals import StopSignals
@@ -73,25 +73,20 @@ class Callback:
 class Runner:
     """The training loop: drives an :class:`~rlpipe.algos.Algorithm` until the run's end.
 
-    The end is ``total_frames`` frames or the algorithm's own ``budget`` of iterations
-    (REINFORCE epochs, ARS iterations), whichever comes first.
+    The end: ``total_frames`` frames or the algorithm's own ``budget`` of iterations, whichever
+    comes first. Shows a progress bar, evaluates the greedy policy every ``eval_every`` frames and at the end
+    (``eval_env`` seeded with ``eval_seed`` before each, so that every evaluation of a run,
+    resumed or not, meets the same episodes' starts), logs ``train/``, ``eval/`` and ``time/``
+    metrics through a TorchRL logger, and checkpoints every ``checkpoint_every`` frames, at the
+    end (newest ``keep_checkpoints`` kept) and at every best evaluation, through ``run_dir`` (a
+    :class:`RunStore`: ``rlpipe.RunDir(path)``), held for the whole run. ``callbacks``
+    (:class:`Callback`) see every evaluation and the end.
 
-    Shows a progress bar (frames/s, latest training episode return, last eval), evaluates
-    the greedy policy every ``eval_every`` frames and at the end, logs ``train/``, ``eval/``
-    and ``time/`` metrics through a TorchRL logger, and checkpoints every ``checkpoint_every``
-    frames and at the end (newest ``keep_checkpoints`` kept), and at every evaluation better
-    than the ones before, through ``run_dir`` (a :class:`RunStore`: ``rlpipe.RunDir(path)``),
-    which it holds for the whole run. ``callbacks`` (:class:`Callback`) see every evaluation
-    and the end. ``eval_seed`` seeds ``eval_env`` before every evaluation (None: it goes on with
-    its own episodes), so that every evaluation of a run, resumed or not, meets the same
-    episodes' starts.
-
-    ``config`` (a :class:`~rlpipe.config.Config`) is written to ``config.yaml`` and into every
-    checkpoint, so ``load_run``, ``rlpipe.evaluate``, ``rlpipe.plot`` and ``train`` (resume)
-    work on the run; left out, it is the algorithm's own record
-    (:meth:`~rlpipe.algos.base.Algorithm.run_config`); without one no ``config.yaml`` is written.
-    Its ``threads`` (``"auto"`` without a config) set torch's intra-op threads, process-wide,
-    when the runner is built: a hand-built run trains as fast as ``train`` runs it.
+    ``config`` (a :class:`~rlpipe.config.Config`; left out: the algorithm's own record,
+    :meth:`~rlpipe.algos.base.Algorithm.run_config`) goes to ``config.yaml`` and every
+    checkpoint, so ``load_run``, ``rlpipe.evaluate``, ``rlpipe.plot`` and resumes work on the
+    run. Its ``threads`` (``"auto"`` without one) set torch's intra-op threads when the runner
+    is built: a hand-built run trains as fast as ``train`` runs it.
     """
 
     def __init__(
@@ -331,18 +326,12 @@ class Runner:
         self._window_start, self._window_frames = now, frames
 
     def _check_finite(self, metrics: Metrics | None = None) -> None:
-        """Raise :class:`Diverged` on a non-finite metric of the iteration (every iteration) or,
-        with ``metrics`` None, a non-finite policy parameter (before each checkpoint and
-        evaluation: a non-finite step shows in the next iteration's loss anyway)."""
-        if metrics is not None:
-            bad = [k for k in self.algo.finite_keys if k in metrics and not _all_finite(metrics[k])]
-        elif not all(bool(p.isfinite().all()) for p in self.algo.policy.parameters()):
-            bad = ["policy parameters"]
-        else:
-            bad = []
-        if bad:
+        """Raise :class:`Diverged` on a non-finite metric of the iteration or, with ``metrics``
+        None (before checkpoints and evaluations), a non-finite policy parameter."""
+        bad = not_finite(metrics, self.algo.finite_keys, self.algo.policy.parameters())
+        if bad is not None:
             raise Diverged(
-                f"training diverged at {self.algo.frames:,} frames: {bad[0]} is not finite; "
+                f"training diverged at {self.algo.frames:,} frames: {bad} is not finite; "
                 f"stopped without a new checkpoint (last good: "
                 f"{self.store.latest_checkpoint() or 'none'}); {self.algo.divergence_hint}"
             )
@@ -409,7 +398,3 @@ class Runner:
                 f"cannot write metrics in {self.run_dir}: {err.strerror or err}; free some disk "
                 "space or pick a writable hydra.run.dir, then resume"
             ) from err
-
-
-def _all_finite(value: float | list[float]) -> bool:
-    return all(math.isfinite(v) for v in (value if isinstance(value, list) else [value]))

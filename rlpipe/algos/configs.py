@@ -67,7 +67,6 @@ class OffPolicyConfig(AlgoConfig):
 class DQNConfig(OffPolicyConfig):
     """DQN hyper-parameters; the defaults are the workshop notebook's."""
 
-    architecture: ClassVar[tuple[str, ...]] = ("hidden_sizes", "network")
     buffer_keys: ClassVar[tuple[str, ...]] = ("buffer_size", "n_steps")  # n-step transitions
 
     name: str = "dqn"
@@ -119,8 +118,6 @@ class DQNConfig(OffPolicyConfig):
 class SACConfig(OffPolicyConfig):
     """SAC hyper-parameters; the defaults are SB3's."""
 
-    architecture: ClassVar[tuple[str, ...]] = ("hidden_sizes", "network")
-
     name: str = "sac"
     total_frames: int | None = 50_000  # SAC has no budget of its own: the run's length
     eval_every: int = 5_000
@@ -132,8 +129,6 @@ class SACConfig(OffPolicyConfig):
 @dataclass
 class PPOConfig(AlgoConfig):
     """PPO hyper-parameters; the defaults are SB3's."""
-
-    architecture: ClassVar[tuple[str, ...]] = ("hidden_sizes", "network")
 
     name: str = "ppo"
     total_frames: int | None = 100_000  # PPO has no budget of its own: the run's length
