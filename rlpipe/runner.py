@@ -74,13 +74,13 @@ class Runner:
     """The training loop: drives an :class:`~rlpipe.algos.Algorithm` until the run's end.
 
     The end: ``total_frames`` frames or the algorithm's own ``budget`` of iterations, whichever
-    comes first. Shows a progress bar, evaluates the greedy policy every ``eval_every`` frames and at the end
-    (``eval_env`` seeded with ``eval_seed`` before each, so that every evaluation of a run,
-    resumed or not, meets the same episodes' starts), logs ``train/``, ``eval/`` and ``time/``
-    metrics through a TorchRL logger, and checkpoints every ``checkpoint_every`` frames, at the
-    end (newest ``keep_checkpoints`` kept) and at every best evaluation, through ``run_dir`` (a
-    :class:`RunStore`: ``rlpipe.RunDir(path)``), held for the whole run. ``callbacks``
-    (:class:`Callback`) see every evaluation and the end.
+    comes first. Shows a progress bar, evaluates the greedy policy every ``eval_every`` frames
+    and at the end (``eval_env`` seeded with ``eval_seed`` before each: every evaluation of a
+    run, resumed or not, meets the same episodes' starts), logs ``train/``, ``eval/`` and
+    ``time/`` metrics through a TorchRL logger, and checkpoints every ``checkpoint_every``
+    frames, at the end (newest ``keep_checkpoints`` kept) and at every best evaluation, through
+    ``run_dir`` (a :class:`RunStore`: ``rlpipe.RunDir(path)``), held for the whole run.
+    ``callbacks`` (:class:`Callback`) see every evaluation and the end.
 
     ``config`` (a :class:`~rlpipe.config.Config`; left out: the algorithm's own record,
     :meth:`~rlpipe.algos.base.Algorithm.run_config`) goes to ``config.yaml`` and every
