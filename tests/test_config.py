@@ -49,6 +49,7 @@ EXPECTED_IDS = {
     "bipedal_hardcore": "BipedalWalker-v3",
     "cartpole_continuous": "rlpipe/CartPoleContinuous-v0",
     "cartpole_noop": "rlpipe/CartPoleNoop-v0",
+    "minigrid_pixels": "rlpipe/MiniGrid-Empty-5x5-Pixels-v0",
 }
 
 
