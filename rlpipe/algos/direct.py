@@ -21,13 +21,14 @@ from tensordict import TensorDict, TensorDictBase
 from torch import nn
 from torchrl._utils import _standardize
 from torchrl.modules import TanhNormal
-from torchrl.modules.distributions.utils import safetanh_noeps
 from torchrl.objectives import ClipPPOLoss, DQNLoss, SACLoss
 from torchrl.objectives.utils import distance_loss
 
 from rlpipe.models import TensorModule
 
 LOG_SQRT_2PI = math.log(math.sqrt(2 * math.pi))  # of the Normal's log-density
+# TorchRL's safetanh_noeps keeps tanh inside the open interval (-1, 1) by this margin
+TANH_LIMIT = 1.0 - torch.finfo(torch.float32).resolution
 
 
 def inner_network(module: nn.Module) -> TensorModule:
@@ -131,7 +132,8 @@ class DirectSACLoss(SACLoss):
     ``r + γ (1 - terminated) (min Q'(s', a') - α log π(a'|s'))``, the critics' summed distance
     losses and ``td_error``, the actor's ``α log π(a|s) - min Q(s, a)`` through critics held
     fixed, and the entropy coefficient's loss; and ``loss_qvalues``, each critic's distance loss
-    (for logging)."""
+    (for logging). The critics (TorchRL MLPs, their parameters stacked) run all at once
+    (:class:`Stacked`)."""
 
     def __init__(self, actor_network: nn.Module, qvalue_network: nn.Module, **kwargs) -> None:
         super().__init__(actor_network, qvalue_network, **kwargs)
@@ -148,10 +150,11 @@ class DirectSACLoss(SACLoss):
         self._bound = Bound()
 
     def _networks(self) -> tuple:
-        """The actor; the critics on their parameters, on detached ones, on the targets."""
-        q, n = self.qvalue_network, self.num_qvalue_nets
+        """The actor; the critics (all at once) on their parameters, on detached ones, on the
+        targets."""
+        q = inner_network(self.qvalue_network).module
         critics = tuple(
-            tuple(bind(q, params[i]) for i in range(n))
+            Stacked(q, params["module"])
             for params in (
                 self.qvalue_network_params,
                 self.qvalue_network_params.detach(),
@@ -171,16 +174,16 @@ class DirectSACLoss(SACLoss):
         with torch.no_grad():
             next_obs = tensordict.get(("next", self.obs_key))
             next_action, next_log_prob = self._act(actor, next_obs)
-            next_q = torch.stack([q(next_obs, next_action) for q in targets])
+            next_q = targets(next_obs, next_action)
             next_value = (next_q - alpha * next_log_prob.unsqueeze(-1)).min(0)[0]
             target = td0_target(self, tensordict, next_value).squeeze(-1)
-        predicted = torch.stack([q(obs, action) for q in critics]).squeeze(-1)
+        predicted = critics(obs, action).squeeze(-1)
         loss_q = distance_loss(predicted, target.expand_as(predicted), self.loss_function)
         each = loss_q.detach().mean(-1)  # of each critic, for logging
         weights = self._maybe_get_priority_weight(tensordict)
         loss_q = self._reduce_loss(loss_q.sum(0), tensordict=tensordict, weights=weights)
         new_action, log_prob = self._act(actor, obs)
-        new_q = torch.stack([q(obs, new_action) for q in fixed]).min(0)[0].squeeze(-1)
+        new_q = fixed(obs, new_action).min(0)[0].squeeze(-1)
         loss_actor = self._reduce_loss(
             alpha * log_prob - new_q, tensordict=tensordict, weights=weights
         )
@@ -210,7 +213,11 @@ def tanh_normal_rsample(
     low, high = torch.as_tensor(low, device=loc.device), torch.as_tensor(high, device=loc.device)
     preimage = loc + torch.empty_like(loc).normal_() * scale  # Normal.rsample's draw
     half = (high - low) / 2
-    action = (high + low) / 2 + half * safetanh_noeps(preimage)
+    # TorchRL's safetanh_noeps (tanh kept inside (-1, 1), its gradient 1 - tanh²) in torch's
+    # own ops: an autograd Function costs a Python call in each backward
+    squashed = preimage.tanh()
+    squashed = squashed + (squashed.clamp(-TANH_LIMIT, TANH_LIMIT) - squashed).detach()
+    action = (high + low) / 2 + half * squashed
     log_normal = -((preimage - loc) ** 2) / (2 * scale**2) - scale.log() - LOG_SQRT_2PI
     log_det = 2.0 * (math.log(2.0) - preimage - F.softplus(-2.0 * preimage)) + half.abs().log()
     return action, (log_normal - log_det).sum(-1)
@@ -269,3 +276,25 @@ class DirectPPOLoss(ClipPPOLoss):
                 "explained_variance": 1.0 - residual / total,
             }
         return TensorDict({**out, **diagnostics})
+
+
+class Stacked:
+    """The copies of a TorchRL ``MLP`` whose parameters are stacked (a loss's critics: a leading
+    dimension, one per copy), all run at once: each ``Linear`` one batched matmul over the copies
+    (what TorchRL's vmap over the copies computes), the rest as they are."""
+
+    def __init__(self, mlp: nn.Sequential, params: TensorDictBase) -> None:
+        self.layers = [
+            (params[name]["weight"].transpose(-1, -2), params[name]["bias"].unsqueeze(-2))
+            if isinstance(layer, nn.Linear)
+            else layer
+            for name, layer in mlp.named_children()
+        ]
+        self.copies = params.batch_size[0]
+
+    def __call__(self, *inputs: torch.Tensor) -> torch.Tensor:
+        """``[copies, batch, out]``: every copy on the concatenated ``inputs`` (``[batch, in]``)."""
+        x = torch.cat(inputs, -1).expand(self.copies, *inputs[0].shape[:-1], -1)
+        for layer in self.layers:
+            x = torch.baddbmm(layer[1], x, layer[0]) if isinstance(layer, tuple) else layer(x)
+        return x

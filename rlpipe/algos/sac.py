@@ -17,15 +17,12 @@ from torchrl.envs import EnvBase
 from torchrl.modules import MLP, ProbabilisticActor, TanhNormal
 
 from rlpipe.algos.configs import SACConfig
-from rlpipe.algos.direct import DirectSACLoss, inner_network
+from rlpipe.algos.direct import TANH_LIMIT, DirectSACLoss, inner_network
 from rlpipe.algos.offpolicy import ForeachSoftUpdate, OffPolicy
 from rlpipe.encoders import EncodeFirst, encoder
 from rlpipe.envs import is_discrete
 from rlpipe.errors import RlpipeError
 from rlpipe.models import TensorModule
-
-# TorchRL's safetanh_noeps keeps tanh inside the open interval (-1, 1) by this margin
-TANH_LIMIT = 1.0 - torch.finfo(torch.float32).resolution
 
 
 def tanh_normal_sample(
@@ -33,8 +30,7 @@ def tanh_normal_sample(
 ) -> torch.Tensor:
     """The action :func:`~rlpipe.algos.direct.tanh_normal_rsample` draws (the same random draw
     and value) on bounds ``middle ± half``, without its log-probability and gradient: what
-    collecting needs, at a fraction of the cost (``safetanh_noeps`` is an autograd
-    ``Function``, whose every call binds its signature)."""
+    collecting needs, at a fraction of the cost."""
     preimage = loc + torch.empty_like(loc).normal_() * scale  # Normal.rsample's draw
     return middle + half * preimage.tanh().clamp(-TANH_LIMIT, TANH_LIMIT)
 
@@ -117,9 +113,9 @@ class SAC(OffPolicy):
         q1, q2 = out["loss_qvalues"].unbind(0)
         return loss, {
             "train/alpha": out["alpha"],
-            "train/actor_loss": out["loss_actor"],
+            "train/actor_loss": out["loss_actor"].detach(),
             "train/q1_loss": q1,
             "train/q2_loss": q2,
-            "train/alpha_loss": out["loss_alpha"],
+            "train/alpha_loss": out["loss_alpha"].detach(),
             "train/entropy": out["entropy"],
         }
