@@ -30,6 +30,7 @@ from rlpipe.algos.direct import (
     tanh_normal_rsample,
 )
 from rlpipe.algos.offpolicy import ForeachSoftUpdate
+from rlpipe.encoders import EncodeFirst
 from rlpipe.models import TensorModule, mlp
 
 
@@ -113,7 +114,8 @@ def test_a_deep_copy_is_bound_to_its_own_parameters():
     assert not torch.allclose(twin(_batch())["loss"], loss(_batch())["loss"])
 
 
-def _sac(cls: type, alpha_init: float = 0.7) -> SACLoss:
+def _sac(cls: type, alpha_init: float = 0.7, encoded: bool = False) -> SACLoss:
+    """SAC's losses; ``encoded``: the critic an encoder first (a network other than an MLP)."""
     torch.manual_seed(3)
     spec = Bounded(-2.0, 2.0, (1,))
     net = nn.Sequential(mlp(4, 2, (16, 16)), NormalParamExtractor("biased_softplus_1"))
@@ -125,6 +127,8 @@ def _sac(cls: type, alpha_init: float = 0.7) -> SACLoss:
         distribution_kwargs={"low": spec.space.low, "high": spec.space.high},
     )
     critic = MLP(in_features=5, out_features=1, num_cells=[16, 16], activation_class=nn.ReLU)
+    if encoded:
+        critic = EncodeFirst(nn.Sequential(nn.Linear(4, 4), nn.Tanh()), critic)
     qvalue = TensorModule(critic, ["observation", "action"], ["state_action_value"])
     loss = cls(
         actor,
@@ -145,8 +149,9 @@ def _sac_batch(n: int = 64) -> TensorDict:
     return batch
 
 
-def test_the_direct_forward_is_sacloss():
-    theirs, ours = _sac(SACLoss), _sac(DirectSACLoss)
+@pytest.mark.parametrize("encoded", [False, True], ids=["mlp-critics", "encoded-critics"])
+def test_the_direct_forward_is_sacloss(encoded):
+    theirs, ours = _sac(SACLoss, encoded=encoded), _sac(DirectSACLoss, encoded=encoded)
     with torch.no_grad():  # targets apart from the critics
         for p in theirs.target_qvalue_network_params.values(True, True):
             p.add_(0.1 * torch.randn_like(p))

@@ -20,7 +20,7 @@ import torch.nn.functional as F
 from tensordict import TensorDict, TensorDictBase
 from torch import nn
 from torchrl._utils import _standardize
-from torchrl.modules import TanhNormal
+from torchrl.modules import MLP, TanhNormal
 from torchrl.objectives import ClipPPOLoss, DQNLoss, SACLoss
 from torchrl.objectives.utils import distance_loss
 
@@ -132,7 +132,7 @@ class DirectSACLoss(SACLoss):
     ``r + γ (1 - terminated) (min Q'(s', a') - α log π(a'|s'))``, the critics' summed distance
     losses and ``td_error``, the actor's ``α log π(a|s) - min Q(s, a)`` through critics held
     fixed, and the entropy coefficient's loss; and ``loss_qvalues``, each critic's distance loss
-    (for logging). The critics (TorchRL MLPs, their parameters stacked) run all at once
+    (for logging). Critics that are TorchRL MLPs run all at once on their stacked parameters
     (:class:`Stacked`)."""
 
     def __init__(self, actor_network: nn.Module, qvalue_network: nn.Module, **kwargs) -> None:
@@ -152,9 +152,8 @@ class DirectSACLoss(SACLoss):
     def _networks(self) -> tuple:
         """The actor; the critics (all at once) on their parameters, on detached ones, on the
         targets."""
-        q = inner_network(self.qvalue_network).module
         critics = tuple(
-            Stacked(q, params["module"])
+            self._critics(params)
             for params in (
                 self.qvalue_network_params,
                 self.qvalue_network_params.detach(),
@@ -162,6 +161,15 @@ class DirectSACLoss(SACLoss):
             )
         )
         return bind(self.actor_network, self.actor_network_params), *critics
+
+    def _critics(self, params: TensorDictBase):
+        """``[copies, batch, 1]`` from ``(obs, action)``: a TorchRL MLP's copies at once
+        (:class:`Stacked`); any other critic (an encoder first) one copy after another."""
+        q = inner_network(self.qvalue_network).module
+        if type(q) is MLP:
+            return Stacked(q, params["module"])
+        copies = [bind(self.qvalue_network, params[i]) for i in range(self.num_qvalue_nets)]
+        return lambda *inputs: torch.stack([copy(*inputs) for copy in copies])
 
     def _act(self, actor: nn.Module, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """A reparametrised action of the policy at ``obs`` and its log-probability."""
