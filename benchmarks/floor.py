@@ -8,9 +8,11 @@ exclude the final evaluation, as ``time/train_seconds`` records them). Rounds al
 (floor, rlpipe / rlpipe, floor); the table gives medians, their ratio, the work each did (env
 steps, gradient steps, minibatch rows) and each process's peak RSS. ``--learn`` also trains each
 floor for the preset's whole budget and evaluates it greedily: the floor's maths is no stub.
+``--compile`` also times rlpipe with ``compile=true`` in the same rounds (its seconds include
+compiling) and reports the seconds torch spent compiling.
 
     python benchmarks/floor.py [--presets dqn_cartpole sac_pendulum ppo_cartpole] [--rounds 3]
-        [--learn] [--append BENCHMARKS.md]
+        [--learn] [--compile] [--append BENCHMARKS.md]
 """
 
 from __future__ import annotations
@@ -54,12 +56,14 @@ def child(kind: str, preset: str, frames: int, seed: int, learn: bool) -> dict:
         if learn:
             out["greedy"] = greedy_return(preset, work.policy, 20, seed + 10_000)
     else:
-        out = _rlpipe(preset, frames, seed)
+        out = _rlpipe(preset, frames, seed, compiled=kind == "compiled")
     out["rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     return out
 
 
-def _rlpipe(preset: str, frames: int, seed: int) -> dict:
+def _rlpipe(preset: str, frames: int, seed: int, compiled: bool) -> dict:
+    from torch._dynamo.utils import compilation_time_metrics
+
     from rlpipe import RunDir, compose_run, train
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -71,6 +75,7 @@ def _rlpipe(preset: str, frames: int, seed: int) -> dict:
             "eval_episodes=1",
             "checkpoint_every=0",
             "progress=false",
+            f"compile={str(compiled).lower()}",
         )
         train(cfg, tmp)
         run = RunDir(tmp)
@@ -82,6 +87,8 @@ def _rlpipe(preset: str, frames: int, seed: int) -> dict:
         "env_steps": frames,
         "gradient_steps": steps,
         "samples": steps * BATCH[preset],
+        # dynamo's frames, each with what it hands to AOTAutograd and inductor
+        "compile_seconds": sum(compilation_time_metrics.get("_compile.compile_inner", [])),
     }
 
 
@@ -102,21 +109,21 @@ def measure(kind: str, preset: str, frames: int, learn: bool = False) -> dict:
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
-def rounds(presets: list[str], count: int, competitor: bool) -> dict:
-    """``{(preset, kind): [results]}`` over ``count`` interleaved rounds."""
+def rounds(presets: list[str], count: int, competitor: bool, kinds: tuple[str, ...]) -> dict:
+    """``{(preset, kind): [results]}`` over ``count`` interleaved rounds (``kinds`` in turn,
+    reversed every other round)."""
     results: dict[tuple[str, str], list[dict]] = {}
     with busy(competitor):
         for r in range(count):
             for preset in presets:
-                order = ("floor", "rlpipe") if r % 2 == 0 else ("rlpipe", "floor")
-                for kind in order:
+                for kind in kinds if r % 2 == 0 else kinds[::-1]:
                     results.setdefault((preset, kind), []).append(
                         measure(kind, preset, FRAMES[preset])
                     )
     return results
 
 
-def rows(presets: list[str], results: dict) -> list[list[str]]:
+def rows(presets: list[str], results: dict, compiled: bool) -> list[list[str]]:
     out = []
     for preset in presets:
         floor, ours = results[preset, "floor"], results[preset, "rlpipe"]
@@ -140,6 +147,11 @@ def rows(presets: list[str], results: dict) -> list[list[str]]:
                 f"{max(r['rss_mb'] for r in ours):.0f}",
             ]
         )
+        if compiled:
+            comp = results[preset, "compiled"]
+            c = statistics.median(r["seconds"] for r in comp)
+            spent = statistics.median(r["compile_seconds"] for r in comp)
+            out[-1] += [f"{c:.2f}", f"{spent:.1f}", f"**{c / f:.2f}**"]
     return out
 
 
@@ -149,7 +161,8 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--learn", action="store_true", help="also check each floor learns")
     parser.add_argument("--append", type=Path, help="replace this section of a Markdown file")
-    parser.add_argument("--child", choices=("floor", "rlpipe"), help=argparse.SUPPRESS)
+    parser.add_argument("--compile", action="store_true", help="also time rlpipe with compile=true")
+    parser.add_argument("--child", choices=("floor", "rlpipe", "compiled"), help=argparse.SUPPRESS)
     parser.add_argument("--preset", help=argparse.SUPPRESS)
     parser.add_argument("--frames", type=int, help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -168,19 +181,24 @@ def main() -> None:
         "floor peak RSS MB",
         "rlpipe peak RSS MB",
     ]
+    kinds = ("floor", "rlpipe")
+    if args.compile:
+        kinds += ("compiled",)
+        headers += ["rlpipe compile=true s", "of which compiling s", "compiled / floor"]
     lines = [
         "## rlpipe against the hand-written floor (benchmarks/floor.py)",
         "",
         f"- machine: {machine(['torch', 'torchrl', 'tensordict', 'gymnasium'])}",
         f"- load before: {load:.2f}; command: `python benchmarks/floor.py --presets "
-        f"{' '.join(args.presets)} --rounds {args.rounds}{' --learn' if args.learn else ''}`",
+        f"{' '.join(args.presets)} --rounds {args.rounds}{' --learn' if args.learn else ''}"
+        f"{' --compile' if args.compile else ''}`",
         "- seconds: training only (no evaluation), seed 0, one torch thread, median of "
         f"{args.rounds} interleaved rounds, each a fresh process",
     ]
     for competitor in (False, True):
-        results = rounds(args.presets, args.rounds, competitor)
+        results = rounds(args.presets, args.rounds, competitor, kinds)
         lines += ["", f"**{'beside a busy process' if competitor else 'quiet'}**", ""]
-        lines.append(table(headers, rows(args.presets, results)))
+        lines.append(table(headers, rows(args.presets, results, args.compile)))
     if args.learn:
         learned = []
         for preset in args.presets:

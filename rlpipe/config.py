@@ -187,6 +187,9 @@ class Config:
     # torch intra-op threads: auto (1 on CPU: small networks gain nothing from more, and idle
     # OpenMP threads spin against every other process), N, or 0 (torch's default: one per core)
     threads: Any = "auto"
+    # torch.compile of the loss: false, true (an error where torch cannot compile), auto (where
+    # it can, else one warning); false by default: on CPU it was slower (BENCHMARKS.md)
+    compile: Any = False
     resume: str | None = None  # a run dir to continue from its last good checkpoint
     # a NEW run from a trained run's weights and observation normaliser:
     # <run dir>[:<frames>|best|<checkpoint file>] (newest by default; config.yaml pins the file)
@@ -212,6 +215,10 @@ class Config:
             self.threads == "auto" or (type(self.threads) is int and 0 <= self.threads <= cores),
             f"threads must be auto or a number from 0 (torch's default) to {cores} (the cores "
             f"here), got {self.threads!r}",
+        )
+        check(
+            isinstance(self.compile, bool) or self.compile == "auto",
+            f"compile must be true, false or auto, got {self.compile!r}",
         )
         check(
             isinstance(self.video, bool) or (isinstance(self.video, int) and self.video >= 0),
@@ -240,6 +247,7 @@ NOT_FINGERPRINTED = (
     "progress",
     "video",
     "threads",
+    "compile",
     "device",
     "resume",
     "logger",

@@ -82,6 +82,7 @@ def train(
             device=device,
             network=network,
             threads=cfg.threads,  # torch's, process-wide (the Runner applies the same)
+            compile=cfg.compile,
         )
         stack.callback(algo.close)
         runner = Runner(

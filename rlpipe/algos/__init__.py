@@ -47,16 +47,23 @@ def make_algorithm(
     device: str | torch.device = "cpu",
     network: nn.Module | None = None,
     threads: int | str = "auto",
+    compile: bool | str = False,
 ) -> Algorithm:
     """Build the algorithm named by ``cfg.name`` on envs from ``env_factory``.
 
     ``network``: your module in place of the algorithm's default network. ``threads``: torch's
     intra-op threads, set process-wide first (a run's ``threads`` key: ``"auto"`` is 1 on a CPU
-    device, ``0`` torch's default, ``N`` N)."""
+    device, ``0`` torch's default, ``N`` N). ``compile``: ``torch.compile`` the algorithm's loss
+    (``True``, or ``"auto"``: where torch can compile here; :mod:`rlpipe.algos.compiling`)."""
     import torch  # with the algorithm: importing this package loads no torch
 
+    from rlpipe.algos.compiling import compile_algorithm, wants_compile
     from rlpipe.runtime import set_threads
 
     set_threads(threads, torch.device(device))
+    compiling = wants_compile(compile, torch.device(device))  # before anything is built
     extra = {} if network is None else {"network": network}
-    return ALGORITHMS.builder(cfg.name)(env_factory, cfg, device=device, **extra)
+    algo = ALGORITHMS.builder(cfg.name)(env_factory, cfg, device=device, **extra)
+    if compiling:
+        compile_algorithm(algo, strict=compile is True)
+    return algo

@@ -84,6 +84,8 @@ class Algorithm:
     budget_frames: int | None = None
     finite_keys: ClassVar[tuple[str, ...]] = ()  # metrics that must stay finite (else: diverged)
     divergence_hint: ClassVar[str] = "try a smaller algo.lr"  # what a divergence error ends with
+    # the modules (attribute names) whose forward compile=true|auto compiles: the loss
+    compiled: ClassVar[tuple[str, ...]] = ()
     frame_limit: int | None = None  # the run's total_frames: collect no further (limit_frames)
     _stop = False  # request_stop's flag
     # what it was built from (None for an algorithm built otherwise): run_config reads them

@@ -57,6 +57,7 @@ class Bound:
         self.owner: tuple[int, ...] = ()
         self.nets: tuple = ()
 
+    @torch.compiler.disable  # under compile=true the forward's graph starts after the binding
     def __call__(self, loss: nn.Module) -> tuple:
         owner = tuple(id(p) for p in loss.parameters())
         if owner != self.owner:

@@ -41,6 +41,7 @@ class OffPolicy(EnvAlgorithm):
 
     cfg: OffPolicyConfig
     state_attrs = ("loss", "optimizer", "buffer")
+    compiled = ("loss",)
     # gradient steps so far; during one, its number (from 1), which loss_of and update_targets
     # read (e.g. TD3's delayed actor and target updates)
     updates: int = 0

@@ -94,6 +94,7 @@ class PPO(EnvAlgorithm):
 
     cfg: PPOConfig
     state_attrs = ("loss", "optimizer", "normalizer")
+    compiled = ("loss",)
     activation = torch.nn.Tanh  # SB3's and the PPO paper's
 
     def _build(self, env: EnvBase) -> None:
