@@ -32,6 +32,7 @@ KEYS = {
     "progress": "the progress bar",
     "video": "true: an mp4 at every evaluation; N: every N frames (video extra)",
     "threads": "torch intra-op threads: auto (1 on CPU), N, or 0 (torch's default)",
+    "compile": "torch.compile the loss (DQN, SAC, PPO): false, true, auto (where it can)",
     "resume": "a run dir to continue from its newest intact checkpoint",
     "init_from": "a NEW run from a run dir's weights: <dir>[:<frames>|best] (newest)",
     "init_optimizer": "with init_from: also its optimizer state",
