@@ -32,14 +32,15 @@ EASE_BACK = (-0.05, -0.2)  # hip and knee torque for a folding leg
 
 
 class RandomActions(nn.Module):
-    """Uniform samples from an action spec, one per observation in the batch."""
+    """Uniform samples from an action spec, one per observation in the batch (an observation
+    has ``observation_dims`` dimensions of its own: 1 for a vector, 3 for an image)."""
 
-    def __init__(self, spec: TensorSpec) -> None:
+    def __init__(self, spec: TensorSpec, observation_dims: int = 1) -> None:
         super().__init__()
-        self.spec = spec
+        self.spec, self.observation_dims = spec, observation_dims
 
     def forward(self, observation: torch.Tensor) -> torch.Tensor:
-        return self.spec.rand(observation.shape[:-1])
+        return self.spec.rand(observation.shape[: observation.ndim - self.observation_dims])
 
 
 class NotebookWalker(nn.Module):
@@ -158,8 +159,9 @@ class WalkerGait(nn.Module):
 
 def random_policy(env: EnvBase) -> TensorDictModule:
     """Uniformly random actions for ``env`` (any action space)."""
+    dims = len(env.observation_spec_unbatched["observation"].shape)
     return TensorDictModule(
-        RandomActions(env.action_spec_unbatched), in_keys=["observation"], out_keys=["action"]
+        RandomActions(env.action_spec_unbatched, dims), in_keys=["observation"], out_keys=["action"]
     )
 
 

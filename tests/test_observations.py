@@ -194,3 +194,14 @@ def test_an_image_policy_is_refused_by_export_and_a_dict_policy_exports():
     observations = torch.rand(3, 197) * 255
     values = keys.policy(TensorDict(observation=observations, batch_size=[3]))["action_value"]
     assert torch.equal(greedy_policy(keys)(observations), values.argmax(-1))
+
+
+def test_the_random_baseline_acts_once_per_copy_on_images():
+    """policy=random on an image env (a stack of frames): one action per env copy, and episodes."""
+    from rlpipe.episodes import evaluate
+    from rlpipe.heuristic import random_policy
+
+    env = make_env(EnvConfig(id="rlpipe-test/Image-v0", num_envs=3), seed=0)
+    policy = random_policy(env)
+    assert policy(env.reset())["action"].shape == env.action_spec.shape
+    assert len(evaluate(policy, env, 4).returns) == 4
