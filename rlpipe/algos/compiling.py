@@ -13,7 +13,6 @@ from rlpipe.algos.base import Algorithm
 from rlpipe.console import say, warn
 from rlpipe.errors import RlpipeError
 
-COMPILE_CHOICES = (False, True, "auto")
 # what inductor's CPU code needs: a C++ compiler ($CXX, else the first of these on PATH)
 CXX_NAMES = ("g++", "c++", "clang++")
 
