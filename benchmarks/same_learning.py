@@ -30,12 +30,15 @@ PRESETS = ["dqn_cartpole", "sac_pendulum", "ppo_cartpole"]
 def run(python: str, extra: list[str], preset: str, seed: int, out: Path) -> dict:
     """One run's final eval and training seconds (read back if ``out`` has it already)."""
     summary = out / "summary.json"
-    if not summary.is_file():
+    ran = not summary.is_file()
+    if ran:
         command = [python, "-m", "rlpipe", f"+experiment={preset}", f"seed={seed}", *extra]
         command += ["progress=false", f"hydra.run.dir={out}"]
         subprocess.run(command, check=True, capture_output=True, cwd=out.parent.parent)
+    summary = json.loads(summary.read_text())
     seconds = read_scalar(out, "time/train_seconds")[-1][1]
-    return {**json.loads(summary.read_text()), "train_seconds": seconds}
+    late = [r for f, r in read_scalar(out, "train/episode_return") if f > 0.8 * summary["frames"]]
+    return {**summary, "train_seconds": seconds, "late_return": statistics.mean(late), "ran": ran}
 
 
 def main() -> None:
@@ -62,33 +65,36 @@ def main() -> None:
                     jobs[preset, seed, side] = pool.submit(run, python, extra, preset, seed, out)
     results = {key: job.result() for key, job in jobs.items()}
     head = section_head(
-        "The same learning before and after (benchmarks/same_learning.py)",
+        "The same learning before and after",
         ["torch", "torchrl", "tensordict", "gymnasium"],
-        load_span(start, os.getloadavg()),
+        load_span(start, os.getloadavg())
+        + f" ({sum(r['ran'] for r in results.values())} of {len(results)} runs ran in this call; "
+        "the others were read back from --out)",
         f"before: {args.before_label}; both sides on gymnasium's envs, {args.jobs} runs at once",
         "final eval: the mean return of the run's final greedy evaluation (summary.json); "
-        "train s: its training seconds",
+        "late training return: the mean return of its training episodes that ended in the last "
+        "20% of its frames (the exploring policy; no evaluation seeding involved); train s: its "
+        "training seconds",
     )
     rows = []
     for preset in args.presets:
-        finals = {s: [results[preset, seed, s]["eval_mean"] for seed in args.seeds] for s in sides}
-        secs = {
-            s: [results[preset, seed, s]["train_seconds"] for seed in args.seeds] for s in sides
+        of = {
+            key: {s: [results[preset, seed, s][key] for seed in args.seeds] for s in sides}
+            for key in ("eval_mean", "late_return", "train_seconds")
         }
         for i, seed in enumerate(args.seeds):
-            rows.append(
-                [f"`{preset}`", seed]
-                + [f"{finals[s][i]:.1f}" for s in sides]
-                + [f"{secs[s][i]:.1f}" for s in sides]
-            )
-        rows.append(
-            [f"**`{preset}`**", "mean ± std"]
-            + [f"**{statistics.mean(v):.1f} ± {statistics.stdev(v):.1f}**" for v in finals.values()]
-            + [f"**{statistics.median(v):.1f}** (median)" for v in secs.values()]
-        )
-    labels = list(sides)
-    headers = ["preset", "seed", *(f"{s} final eval" for s in labels)]
-    headers += [f"{s} train s" for s in labels]
+            cells = [f"{of[key][s][i]:.1f}" for key in of for s in sides]
+            rows.append([f"`{preset}`", seed, *cells])
+        spread = [
+            f"**{statistics.mean(v):.1f} ± {statistics.stdev(v):.1f}**"
+            for key in ("eval_mean", "late_return")
+            for v in of[key].values()
+        ]
+        medians = [f"**{statistics.median(v):.1f}** (median)" for v in of["train_seconds"].values()]
+        rows.append([f"**`{preset}`**", "mean ± std", *spread, *medians])
+    headers = ["preset", "seed"]
+    for what in ("final eval", "late training return", "train s"):
+        headers += [f"{s} {what}" for s in sides]
     publish_section("\n".join([*head, table(headers, rows)]), args.append)
 
 

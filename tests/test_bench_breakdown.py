@@ -68,8 +68,13 @@ def test_each_sampled_stack_goes_to_its_innermost_part(bench, stack, part):
 def test_a_finished_run_is_read_back_not_run_again(bench, tmp_path):
     _, same = bench
     run = tmp_path / "now" / "dqn_cartpole" / "0"
-    (run / "metrics" / "scalars" / "time").mkdir(parents=True)
+    scalars = run / "metrics" / "scalars"
+    for folder in ("time", "train"):
+        (scalars / folder).mkdir(parents=True)
     (run / "summary.json").write_text(json.dumps({"eval_mean": 480.5, "frames": 50_000}))
-    (run / "metrics" / "scalars" / "time" / "train_seconds.csv").write_text("50000,21.5\n")
+    (scalars / "time" / "train_seconds.csv").write_text("50000,21.5\n")
+    # episodes that ended in the last 20% of the frames are the late ones
+    (scalars / "train" / "episode_return.csv").write_text("30000,10\n40001,300\n49000,500\n")
     result = same.run("/nonexistent/python", [], "dqn_cartpole", 0, run)  # would fail if run
-    assert (result["eval_mean"], result["train_seconds"]) == (480.5, 21.5)
+    assert (result["eval_mean"], result["train_seconds"], result["ran"]) == (480.5, 21.5, False)
+    assert result["late_return"] == 400.0
