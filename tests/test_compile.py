@@ -62,6 +62,22 @@ def test_an_algorithm_without_a_loss_refuses_compile_true():
         compile_algorithm(NoLoss(), strict=True)
 
 
+def test_compile_true_on_ars_is_one_line(tmp_path):
+    result = run_module(
+        "rlpipe",
+        "algo=ars",
+        "compile=true",
+        "total_frames=100",
+        f"hydra.run.dir={tmp_path / 'r'}",
+        cwd=tmp_path,
+    )
+    assert result.returncode == 2
+    assert result.stderr.strip().splitlines() == [
+        "rlpipe: error: compile=true, but ARS has no gradient step to compile: run with "
+        "compile=false"
+    ]
+
+
 def test_compile_true_without_a_compiler_is_one_line(tmp_path):
     result = run_module(
         "rlpipe",

@@ -65,5 +65,9 @@ def make_algorithm(
     extra = {} if network is None else {"network": network}
     algo = ALGORITHMS.builder(cfg.name)(env_factory, cfg, device=device, **extra)
     if compiling:
-        compile_algorithm(algo, strict=compile is True)
+        try:
+            compile_algorithm(algo, strict=compile is True)
+        except BaseException:
+            algo.close()  # its env and workers
+            raise
     return algo
