@@ -17,12 +17,16 @@ once (rlpipe seed s and SB3 seed s side by side). Runs finished in ``--out`` by 
 are read, not run again, with the machine they ran on, so an interrupted benchmark continues
 (the hours-long presets from their last eval, on both sides) and the section can be made again;
 ``--read-only`` makes it from what ``--out`` holds and runs nothing (runs not there: left out).
+Each job leaves a small record (``rlpipe.json``, ``sb3.json``: evals, final eval, machine, load);
+under ``benchmarks/results/presets`` git keeps the records and ignores the run dirs, so the
+published table is remade from the repo and a benchmark spread over machines and days goes on.
 
     pip install -e ".[dev,bench]"
-    python benchmarks/presets.py --sb3 --out runs/presets --append BENCHMARKS.md \
+    python benchmarks/presets.py --sb3 --out benchmarks/results/presets --append BENCHMARKS.md \
         --figure docs/presets_profile.png                                  # everything (long)
-    python benchmarks/presets.py --presets dqn_cartpole --sb3 --out runs/presets
-    python benchmarks/presets.py --sb3 --out runs/presets --read-only --append BENCHMARKS.md
+    python benchmarks/presets.py --presets dqn_cartpole --sb3 --out benchmarks/results/presets
+    python benchmarks/presets.py --sb3 --out benchmarks/results/presets --read-only \
+        --append BENCHMARKS.md
     python benchmarks/presets.py --presets dqn_cartpole --tune --seeds 0 1 2   # tuning
     python benchmarks/presets.py --presets dqn_cartpole --seeds 100 --frames 2000 \
         --final-episodes 3 --sb3                                           # smoke test

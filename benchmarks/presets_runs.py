@@ -7,9 +7,11 @@ Each rlpipe run is exactly what a user runs, in a subprocess (``SDL_VIDEODRIVER=
     python -m rlpipe.evaluate run_dir=<dir> episodes=<final episodes>
 
 then its ``metrics/scalars/eval/return_mean.csv`` and ``time/train_seconds.csv`` give the evals
-(frames, mean, training seconds), ``evaluation/trained-*.json`` the final greedy eval, and
-``rlpipe.json`` the machine and load it ran on. A run finished in ``--out`` by an earlier call
-is read, not run again.
+(frames, mean, training seconds) and ``evaluation/trained-*.json`` the final greedy eval; all of
+it, with the machine and load it ran on, goes to the record ``rlpipe.json`` beside the run dir.
+A job whose record holds its evals is finished: a later call reads the record, not the run dir,
+so records kept without their run dirs (``benchmarks/results/presets/``, committed) carry a
+long benchmark across machines.
 """
 
 from __future__ import annotations
@@ -103,8 +105,20 @@ def final_evals(run_dir: Path) -> list[Path]:
 
 
 def rlpipe_finished(out: Path) -> bool:
-    """Whether ``out`` (a job's dir in ``--out``) holds a finished and evaluated rlpipe run."""
+    """Whether ``out`` (a job's dir in ``--out``) holds the record of a finished and evaluated
+    rlpipe run, or such a run (from before records held the evals)."""
+    meta = out / "rlpipe.json"
+    if meta.is_file() and "evals" in json.loads(meta.read_text()):
+        return True
     return (out / "run" / "summary.json").is_file() and bool(final_evals(out / "run"))
+
+
+def read_run(run_dir: Path) -> dict:
+    """A finished run's evals, as ``[frames, mean, training seconds]``, and its final eval."""
+    seconds = dict(read_scalar(run_dir, "time/train_seconds"))
+    evals = [[f, m, seconds[f]] for f, m in read_scalar(run_dir, "eval/return_mean")]
+    final = json.loads(final_evals(run_dir)[-1].read_text())["return_mean"]
+    return {"evals": evals, "final": final}
 
 
 def rlpipe_job(
@@ -133,15 +147,17 @@ def rlpipe_job(
     reused = rlpipe_finished(out)  # an earlier call's run
     if reused:
         saved = json.loads(meta.read_text()) if meta.is_file() else {}
+        if "evals" not in saved:  # a record from before records held the evals
+            saved.update(read_run(run_dir))
     else:
         start = os.getloadavg()[0]
         _call(["-m", "rlpipe", *overrides], log, out)
         _call(["-m", "rlpipe.evaluate", f"run_dir={run_dir}", f"episodes={episodes}"], log, out)
-        saved = record(meta, start)
-    seconds = dict(read_scalar(run_dir, "time/train_seconds"))
-    evals = [(f, m, seconds[f]) for f, m in read_scalar(run_dir, "eval/return_mean")]
-    final = json.loads(final_evals(run_dir)[-1].read_text())["return_mean"]
-    return Run(preset.experiment, seed, "rlpipe", evals, final, reused=reused, **recorded(saved))
+        saved = record(meta, start, **read_run(run_dir))
+    evals = [(int(f), float(m), float(s)) for f, m, s in saved["evals"]]
+    return Run(
+        preset.experiment, seed, "rlpipe", evals, saved["final"], reused=reused, **recorded(saved)
+    )
 
 
 class Scheduler:

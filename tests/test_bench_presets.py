@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import importlib
 import importlib.util
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -170,3 +171,9 @@ def test_a_tiny_run_beside_sb3_and_its_read_back(tmp_path) -> None:
     assert "2 of 2 runs read back" in again.stdout and row in again.stdout
     left_out = "left out (`--read-only`): dqn_cartpole seed 101 (rlpipe), dqn_cartpole seed 101"
     assert left_out in again.stdout
+    # the records alone (what benchmarks/results/ keeps, without run dirs) give the same row
+    job = tmp_path / "runs" / "dqn_cartpole" / "seed100"
+    shutil.rmtree(job / "run")
+    records = subprocess.run([*command, "--read-only"], capture_output=True, text=True)
+    assert records.returncode == 0, records.stderr
+    assert "2 of 2 runs read back" in records.stdout and row in records.stdout
