@@ -1,5 +1,6 @@
-"""The off-policy loop's parts: the foreach soft target update is TorchRL's SoftUpdate, and one
-batch of updates draws its minibatches in one sample."""
+"""The off-policy loop's parts: the foreach soft target update is TorchRL's SoftUpdate, the
+leaf-writing storage is TorchRL's LazyTensorStorage, and one batch of updates draws its
+minibatches in one sample."""
 
 from __future__ import annotations
 
@@ -7,9 +8,12 @@ from functools import partial
 
 import pytest
 import torch
+from tensordict import TensorDict
+from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.objectives import SoftUpdate
 
 from rlpipe.algos import DQN, SAC, DQNConfig, SACConfig
+from rlpipe.algos.offpolicy import LeafStorage
 from rlpipe.config import EnvConfig
 from rlpipe.envs import make_env
 
@@ -62,3 +66,47 @@ def test_a_batch_of_updates_takes_its_minibatches_from_one_draw(monkeypatch):
         assert steps == {algo.cfg.updates_per_batch}
     finally:
         algo.close()
+
+
+def transitions(rows: int, start: int) -> TensorDict:
+    """``rows`` transitions numbered from ``start`` (every leaf tells which row it is)."""
+    n = torch.arange(start, start + rows)
+    obs = n[:, None].float().expand(rows, 3)
+    return TensorDict(
+        {
+            "observation": obs,
+            "action": n[:, None] % 2,
+            "next": {
+                "observation": obs + 1,
+                "reward": -n[:, None].float(),
+                "done": n[:, None] % 3 == 0,
+            },
+        },
+        [rows],
+    )
+
+
+def test_the_leaf_storage_is_torchrls_lazy_tensor_storage():
+    """Both buffers fed the same writes (single rows, several rows, past the end so that the
+    writes wrap around) hold the same rows, report the same length, write the same state dict,
+    and with the same seed draw the same samples; data with other keys takes TorchRL's path."""
+    ours = ReplayBuffer(storage=LeafStorage(10))
+    theirs = ReplayBuffer(storage=LazyTensorStorage(10))
+    start = 0
+    for rows in (1, 3, 1, 4, 6, 1, 2):
+        batch = transitions(rows, start)
+        start += rows
+        assert torch.equal(ours.extend(batch), theirs.extend(batch))
+        assert len(ours) == len(theirs)
+        assert (ours[: len(ours)] == theirs[: len(theirs)]).all()
+    assert len(ours) == 10 and ours[:]["observation"][:, 0].tolist() != list(range(10))
+    mine, reference = ours.state_dict(), theirs.state_dict()
+    assert mine.keys() == reference.keys() and str(mine) == str(reference)
+    torch.manual_seed(1)
+    drawn = ours.sample(32)
+    torch.manual_seed(1)
+    assert (drawn == theirs.sample(32)).all()
+    other = transitions(1, 99).exclude(("next", "done"))  # not the storage's keys
+    ours.extend(other)
+    theirs.extend(other)
+    assert (ours[:] == theirs[:]).all()

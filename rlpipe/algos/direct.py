@@ -259,13 +259,17 @@ class DirectPPOLoss(ClipPPOLoss):
         obs = tensordict.get(self.actor_net.in_keys[0])
         params = self.actor_net.module(obs)
         params = params if isinstance(params, tuple) else (params,)
-        dist = distribution(**dict(zip(dist_keys, params, strict=True)), **kwargs)
         old_log_prob = tensordict.get(keys.sample_log_prob)
-        log_prob = dist.log_prob(tensordict.get(keys.action))
+        action = tensordict.get(keys.action)
+        if distribution is torch.distributions.Categorical and not kwargs:
+            log_prob, entropy = categorical_log_prob_entropy(*params, action)
+        else:
+            dist = distribution(**dict(zip(dist_keys, params, strict=True)), **kwargs)
+            log_prob, entropy = dist.log_prob(action), dist.entropy()
         log_weight = (log_prob - old_log_prob).unsqueeze(-1)
         clipped = log_weight.clamp(*self._clip_bounds)
         gain = torch.minimum(log_weight.exp() * advantage, clipped.exp() * advantage)
-        entropy = dist.entropy().unsqueeze(-1)
+        entropy = entropy.unsqueeze(-1)
         value = self.critic_network.module(obs)
         target = tensordict.get(keys.value_target)
         loss_value = distance_loss(target, value, loss_function=self.loss_critic_type)
@@ -285,6 +289,18 @@ class DirectPPOLoss(ClipPPOLoss):
                 "explained_variance": 1.0 - residual / total,
             }
         return TensorDict({**out, **diagnostics})
+
+
+def categorical_log_prob_entropy(
+    logits: torch.Tensor, action: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """What ``torch.distributions.Categorical(logits=logits)`` gives as ``log_prob(action)`` and
+    ``entropy()`` (the same maths), without building and validating the distribution."""
+    log_probs = logits - logits.logsumexp(-1, keepdim=True)
+    log_prob = log_probs.gather(-1, action.long().unsqueeze(-1)).squeeze(-1)
+    smallest = torch.finfo(log_probs.dtype).min  # Categorical's clamp: 0 · log 0 counts as 0
+    entropy = -(log_probs.clamp(min=smallest) * log_probs.exp()).sum(-1)
+    return log_prob, entropy
 
 
 class Stacked:

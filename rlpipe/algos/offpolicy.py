@@ -8,7 +8,7 @@ from __future__ import annotations
 from typing import Any
 
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.envs import EnvBase
@@ -57,7 +57,7 @@ class OffPolicy(EnvAlgorithm):
         ``act``: the collecting policy on plain tensors (see
         :meth:`~rlpipe.algos.base.EnvAlgorithm.make_collector`)."""
         self.buffer = ReplayBuffer(  # sampled with an explicit size: a batch of minibatches
-            storage=LazyTensorStorage(self.cfg.buffer_size, device=self.device)
+            storage=LeafStorage(self.cfg.buffer_size, device=self.device)
         )
         self._target_cadence = Cadence(self.cfg.target_update_every, 0)
         self.make_collector(env, collect_policy, self.cfg.frames_per_batch, act=act)
@@ -100,7 +100,9 @@ class OffPolicy(EnvAlgorithm):
         losses, scalars = [], {}
         # every minibatch of the batch's updates in one draw (one sampler and storage call)
         draws = self.buffer.sample(cfg.updates_per_batch * cfg.batch_size)
-        for minibatch in draws.reshape(cfg.updates_per_batch, cfg.batch_size).unbind(0):
+        if cfg.updates_per_batch > 1:
+            draws = draws.reshape(cfg.updates_per_batch, cfg.batch_size).unbind(0)
+        for minibatch in draws if cfg.updates_per_batch > 1 else (draws,):
             self.updates += 1
             loss, scalars = self.loss_of(minibatch)
             self.optimizer.zero_grad(set_to_none=True)
@@ -113,8 +115,9 @@ class OffPolicy(EnvAlgorithm):
         if losses:
             if self._target_cadence.due(self.frames):
                 self.target_updater.step()
-            metrics[LOSS] = float(torch.stack(losses).mean())
-            metrics.update({key: float(value) for key, value in scalars.items()})
+            # the mean loss and the last step's scalars in one tensor: one read of its values
+            values = [torch.stack(losses).mean(), *(v.reshape(()) for v in scalars.values())]
+            metrics.update(zip((LOSS, *scalars), torch.stack(values).tolist(), strict=True))
         self.sync_collector()
         return metrics
 
@@ -129,6 +132,28 @@ class OffPolicy(EnvAlgorithm):
         self.follow_schedules()
         self._target_cadence = Cadence(self.cfg.target_update_every, self.frames)
         self.sync_collector()
+
+
+class LeafStorage(LazyTensorStorage):
+    """TorchRL's ``LazyTensorStorage`` (the same state dict, lengths and cursors) whose writes of
+    a TensorDict holding exactly the storage's keys copy each leaf into the storage's tensor at
+    the writer's index: TensorDict's ``__setitem__`` checks and routes each write, which on one
+    transition costs several times the copies. The first write (which allocates the storage)
+    and any other data take TorchRL's path."""
+
+    def set(self, cursor: Any, data: Any, *, set_cursor: bool = True) -> None:
+        if not self.initialized or self._storage_keys is not None or type(data) is not TensorDict:
+            return super().set(cursor, data, set_cursor=set_cursor)
+        leaves = list(data.items(True, True))
+        targets = [self._storage.get(key, None) for key, _ in leaves]
+        if any(t is None for t in targets) or len(targets) != len(self._storage.keys(True, True)):
+            return super().set(cursor, data, set_cursor=set_cursor)
+        if set_cursor:  # what TorchRL's set records before writing
+            self._set_last_cursor(cursor)
+            self._get_new_len(data, cursor)
+        for target, (_, value) in zip(targets, leaves, strict=True):
+            target[cursor] = value
+        self._bump_mutation_revision()
 
 
 class ForeachSoftUpdate(SoftUpdate):
