@@ -150,7 +150,7 @@ def plan(
         for seed in seeds[preset.experiment]:
             where = out / preset.experiment / f"seed{seed}"
             ours = partial(rlpipe_job, preset, cfg, seed, args.frames, episodes, where)
-            jobs = [("rlpipe", partial(ours, args.override), rlpipe_finished)]
+            jobs = [("rlpipe", partial(ours, args.override), partial(rlpipe_finished, cfg=cfg))]
             if args.sb3 and preset.sb3 is not None:
                 jobs.append(
                     ("SB3", partial(sb3_job, preset, cfg, seed, episodes, where), sb3_finished)
@@ -188,6 +188,8 @@ def section(
             "Tuned presets — TUNING seeds",
             f"seeds: TUNING, {used} (--tune): not a result",
         )
+    if args.override:  # its own section: env.backend=gymnasium beside the default backend
+        title += f" — {' '.join(args.override)}"
     if args.frames is not None or args.final_episodes is not None:
         title += " — smoke test, budgets overridden"
     reused = sum(r.reused for r in runs)

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 import threading
@@ -31,7 +32,8 @@ import numpy as np
 from common import machine, read_scalar
 from presets_table import Preset
 
-from rlpipe.config import Config
+from rlpipe.config import Config, fingerprint
+from rlpipe.rundir import RunDir
 
 PACKAGES = ["torch", "torchrl", "tensordict", "gymnasium", "stable_baselines3", "sb3_contrib"]
 UNRECORDED = "not recorded (a run of an earlier version of presets.py)"
@@ -104,12 +106,22 @@ def final_evals(run_dir: Path) -> list[Path]:
     return sorted(found, key=lambda p: p.stat().st_mtime)
 
 
-def rlpipe_finished(out: Path) -> bool:
+def identity(cfg: Config) -> dict:
+    """What a record must match to stand for a run of ``cfg`` on any seed: what decides its
+    results (:func:`rlpipe.config.fingerprint`, the seed aside, and the env backend, which
+    ``auto`` picks per machine: the record names it), its budget and eval cadence."""
+    kept = {k: v for k, v in fingerprint(cfg).items() if k not in ("seed", "env.backend")}
+    kept |= {k: getattr(cfg, k) for k in ("total_frames", "eval_every", "eval_episodes")}
+    return json.loads(json.dumps(kept, default=str))  # as a record reads back
+
+
+def rlpipe_finished(out: Path, cfg: Config | None = None) -> bool:
     """Whether ``out`` (a job's dir in ``--out``) holds the record of a finished and evaluated
-    rlpipe run, or such a run (from before records held the evals)."""
+    rlpipe run of ``cfg`` (a preset changed since: not finished), or such a run from before
+    records held the evals."""
     meta = out / "rlpipe.json"
-    if meta.is_file() and "evals" in json.loads(meta.read_text()):
-        return True
+    if meta.is_file() and "evals" in (saved := json.loads(meta.read_text())):
+        return cfg is None or saved.get("config") == identity(cfg)
     return (out / "run" / "summary.json").is_file() and bool(final_evals(out / "run"))
 
 
@@ -144,7 +156,10 @@ def rlpipe_job(
         f"hydra.run.dir={run_dir}",
         *extra,
     ] + ([f"total_frames={frames}"] if frames is not None else [])
-    reused = rlpipe_finished(out)  # an earlier call's run
+    reused = rlpipe_finished(out, cfg)  # an earlier call's run of this preset
+    if not reused and meta.is_file():  # the record of a preset since changed: run it anew
+        meta.unlink()
+        shutil.rmtree(run_dir, ignore_errors=True)
     if reused:
         saved = json.loads(meta.read_text()) if meta.is_file() else {}
         if "evals" not in saved:  # a record from before records held the evals
@@ -153,7 +168,10 @@ def rlpipe_job(
         start = os.getloadavg()[0]
         _call(["-m", "rlpipe", *overrides], log, out)
         _call(["-m", "rlpipe.evaluate", f"run_dir={run_dir}", f"episodes={episodes}"], log, out)
-        saved = record(meta, start, **read_run(run_dir))
+        ran = RunDir(run_dir).read_config()
+        saved = record(
+            meta, start, **read_run(run_dir), config=identity(ran), backend=ran.env.backend
+        )
     evals = [(int(f), float(m), float(s)) for f, m, s in saved["evals"]]
     return Run(
         preset.experiment, seed, "rlpipe", evals, saved["final"], reused=reused, **recorded(saved)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import importlib
 import importlib.util
+import json
 import shutil
 import subprocess
 import sys
@@ -177,3 +178,11 @@ def test_a_tiny_run_beside_sb3_and_its_read_back(tmp_path) -> None:
     records = subprocess.run([*command, "--read-only"], capture_output=True, text=True)
     assert records.returncode == 0, records.stderr
     assert "2 of 2 runs read back" in records.stdout and row in records.stdout
+    # a record of the preset as it was before a change stands for nothing: left out, not read
+    saved = json.loads((job / "rlpipe.json").read_text())
+    assert saved["backend"] in ("envpool", "gymnasium")
+    saved["config"]["algo.lr"] = 1.0
+    (job / "rlpipe.json").write_text(json.dumps(saved))
+    stale = subprocess.run([*command, "--read-only"], capture_output=True, text=True)
+    assert stale.returncode == 0, stale.stderr
+    assert "left out (`--read-only`): dqn_cartpole seed 100 (rlpipe)" in stale.stdout
