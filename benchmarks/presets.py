@@ -140,7 +140,7 @@ def plan(
     seeds: dict[str, tuple[int, ...]],
     configs: dict[str, Config],
     out: Path,
-) -> tuple[list[list[tuple]], list[str]]:
+) -> tuple[list[list[tuple]], list[tuple[str, int, str]]]:
     """The jobs, a group per preset and seed (rlpipe's run, and SB3's where it runs), and with
     ``--read-only`` the runs left out since ``out`` has no finished one."""
     groups, missing = [], []
@@ -158,7 +158,7 @@ def plan(
             group = []
             for which, job, finished in jobs:
                 if args.read_only and not finished(where):
-                    missing.append(f"{preset.experiment} seed {seed} ({which})")
+                    missing.append((preset.experiment, seed, which))
                 else:
                     group.append((preset.experiment, seed, which, job))
             groups += [group] if group else []
@@ -172,7 +172,7 @@ def section(
     runs: list[Run],
     loads: list[tuple[float, ...]],
     wall: float,
-    missing: list[str],
+    missing: list[tuple[str, int, str]],
 ) -> str:
     """The benchmark's section of BENCHMARKS.md."""
     used = seed_text(sorted({r.seed for r in runs}))
@@ -193,6 +193,7 @@ def section(
     if args.frames is not None or args.final_episodes is not None:
         title += " — smoke test, budgets overridden"
     reused = sum(r.reused for r in runs)
+    starts = sorted(r.load[0] for r in runs if r.load)
     facts = [
         seeds,
         f"{args.jobs} run(s) at once; {wall / 60:.1f} min in all"
@@ -202,8 +203,17 @@ def section(
             else ""
         ),
     ]
-    if missing:
-        facts.append(f"not in `--out`, left out (`--read-only`): {', '.join(missing)}")
+    if starts:  # the call's own load says nothing of runs read back: theirs, from the records
+        facts.append(f"1-min load average at the runs' starts: {starts[0]:.2f}–{starts[-1]:.2f}")
+    if missing:  # per preset, each side's seeds: "dqn_cartpole (rlpipe 101, SB3 101)"
+        sides: dict[str, dict[str, list[int]]] = {}
+        for name, seed, which in missing:
+            sides.setdefault(name, {}).setdefault(which, []).append(seed)
+        left = "; ".join(
+            f"{name} (" + ", ".join(f"{w} {seed_text(s)}" for w, s in by.items()) + ")"
+            for name, by in sides.items()
+        )
+        facts.append(f"not in `--out`, left out (`--read-only`): {left}")
     if args.figure is not None:
         shown = args.figure
         if args.append:

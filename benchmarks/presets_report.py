@@ -118,7 +118,8 @@ def summary_row(preset: Preset, cfg: Config, ours: Side, theirs: Side, where: st
     cells += [seed_text([r.seed for r in ours.runs]), ours.solved(), iqm_cell(ours.finals)]
     cells += [frames, seconds]
     if not theirs.runs:
-        cells += [preset.no_sb3 or "not run (--sb3)", DASH, DASH, DASH, DASH]
+        side = preset.no_sb3 or ("not run (--sb3)" if ours.runs else DASH)  # none yet: neither
+        cells += [side, DASH, DASH, DASH, DASH]
     else:
         cells += [theirs.solved(), iqm_cell(theirs.finals), theirs.to_target()[1]]
         cells.append(ratio(ours, theirs, lambda r: seconds_to(r, preset.target)))

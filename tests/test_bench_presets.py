@@ -170,7 +170,7 @@ def test_a_tiny_run_beside_sb3_and_its_read_back(tmp_path) -> None:
     )
     assert again.returncode == 0, again.stderr
     assert "2 of 2 runs read back" in again.stdout and row in again.stdout
-    left_out = "left out (`--read-only`): dqn_cartpole seed 101 (rlpipe), dqn_cartpole seed 101"
+    left_out = "left out (`--read-only`): dqn_cartpole (rlpipe 101, SB3 101)"
     assert left_out in again.stdout
     # the records alone (what benchmarks/results/ keeps, without run dirs) give the same row
     job = tmp_path / "runs" / "dqn_cartpole" / "seed100"
@@ -185,4 +185,4 @@ def test_a_tiny_run_beside_sb3_and_its_read_back(tmp_path) -> None:
     (job / "rlpipe.json").write_text(json.dumps(saved))
     stale = subprocess.run([*command, "--read-only"], capture_output=True, text=True)
     assert stale.returncode == 0, stale.stderr
-    assert "left out (`--read-only`): dqn_cartpole seed 100 (rlpipe)" in stale.stdout
+    assert "left out (`--read-only`): dqn_cartpole (rlpipe 100)" in stale.stdout
