@@ -66,7 +66,7 @@ def soft_update(target: nn.Module, online: nn.Module, tau: float) -> None:
 def dqn(frames: int, seed: int) -> Work:
     """``+experiment=dqn_cartpole``: 16 copies, 128 frames then 32 double-DQN Huber updates of 256
     per batch, 3-step returns within each batch, AdamW (amsgrad, lr 2e-3 annealed to 0), gradients
-    clipped by value, soft target τ 0.02, ε linear 1 → 0.04 over 5,000 frames."""
+    clipped by value, soft target τ 0.02, ε linear 1 → 0.1 over 5,000 frames."""
     copies, updates, size, capacity, starts = 16, 32, 256, 50_000, 1_000
     gamma, n, tau = 0.99, 3, 0.02
     torch.manual_seed(seed)
@@ -84,7 +84,7 @@ def dqn(frames: int, seed: int) -> Work:
     }
     work, stored, head, done_frames = Work(), 0, 0, 0
     while done_frames < frames:
-        eps = 1.0 + min(done_frames / 5_000, 1.0) * (0.04 - 1.0)
+        eps = 1.0 + min(done_frames / 5_000, 1.0) * (0.1 - 1.0)
         batch = {k: [] for k in ("obs", "act", "rew", "next", "term", "done")}
         steps = min(128 // copies, math.ceil((frames - done_frames) / copies))  # cut at the budget
         per_batch = steps * copies
