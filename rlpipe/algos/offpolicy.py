@@ -100,9 +100,12 @@ class OffPolicy(EnvAlgorithm):
         losses, scalars = [], {}
         # every minibatch of the batch's updates in one draw (one sampler and storage call)
         draws = self.buffer.sample(cfg.updates_per_batch * cfg.batch_size)
-        if cfg.updates_per_batch > 1:
-            draws = draws.reshape(cfg.updates_per_batch, cfg.batch_size).unbind(0)
-        for minibatch in draws if cfg.updates_per_batch > 1 else (draws,):
+        minibatches = (
+            (draws,)
+            if cfg.updates_per_batch == 1
+            else draws.reshape(cfg.updates_per_batch, cfg.batch_size).unbind(0)
+        )
+        for minibatch in minibatches:
             self.updates += 1
             loss, scalars = self.loss_of(minibatch)
             self.optimizer.zero_grad(set_to_none=True)
