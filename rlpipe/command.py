@@ -31,6 +31,7 @@ from rlpipe.cli import (
     register_configs,
     register_sweeper,
     to_config,
+    trap_notice,
     tuned_notice,
     without_hydra,
 )
@@ -191,7 +192,9 @@ def task(cfg: DictConfig) -> float | None:
     def job() -> RunResult:
         check_choices(hydra_cfg.runtime.choices)
         config = to_config(cfg)  # checked before torch loads (with the pipeline, below)
-        notice = tuned_notice(hydra_cfg.runtime.choices)
+        notice = tuned_notice(hydra_cfg.runtime.choices) or trap_notice(
+            config.algo.name, config.env.id
+        )
         if notice:
             say(notice)
         from rlpipe.pipeline import train

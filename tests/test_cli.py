@@ -9,6 +9,8 @@ import sys
 import pytest
 from conftest import TINY
 
+from rlpipe.cli import trap_notice
+
 
 def test_default_job_trains_and_writes_its_run_dir(rlpipe_cli, tmp_path):
     proc = rlpipe_cli(*TINY, "checkpoint_every=100")
@@ -212,3 +214,23 @@ def test_a_pair_with_tuned_settings_runs_them_and_says_so(rlpipe_cli, tmp_path):
     assert first.startswith("rlpipe: ppo on env=cartpole with its tuned settings")
     assert "conf/tuned/ppo_cartpole.yaml" in first and "add ~tuned" in first
     assert "num_envs: 16" in (tmp_path / "run" / "config.yaml").read_text()
+
+
+def test_a_known_exploration_trap_is_named_at_start(rlpipe_cli):
+    """An env where the algorithm's defaults are known to fail (no tuned settings for the pair)
+    says so in one line at start; a pair with tuned settings says that instead."""
+    proc = rlpipe_cli(
+        "algo=ars",
+        "env=gym",
+        "env.id=MountainCarContinuous-v0",
+        "total_frames=2000",
+        "eval_every=0",
+        "eval_episodes=1",
+        "progress=false",
+    )
+    assert proc.returncode == 0, proc.stderr
+    first = proc.stdout.splitlines()[0]
+    assert first.startswith("rlpipe: note: ars's defaults on MountainCarContinuous-v0: a known ")
+    assert "exploration trap" in first and "gSDE" in first
+    assert trap_notice("sac", "MountainCarContinuous-v0").startswith("rlpipe: note: sac's ")
+    assert trap_notice("sac", "Pendulum-v1") is None

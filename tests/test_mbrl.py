@@ -15,7 +15,7 @@ from torchrl.envs import ExplorationType, set_exploration_type
 from rlpipe.algos import MBRL, Algorithm, MBRLConfig
 from rlpipe.algos.base import EPISODE_RETURN
 from rlpipe.algos.mbrl import ActionCoder, EnsembleMLP, Planner, WorldModel
-from rlpipe.algos.mbrl.algorithm import _sub_batch_steps
+from rlpipe.algos.mbrl.algorithm import MPCPolicy, _sub_batch_steps
 from rlpipe.config import EnvConfig
 from rlpipe.envs import make_env
 from rlpipe.errors import RlpipeError
@@ -370,3 +370,26 @@ def test_cli_bad_input_is_one_clear_line(rlpipe_cli, tmp_path, args, message):
     assert len(lines) == 1, proc.stderr
     assert lines[0].startswith("rlpipe: error: ") and message in lines[0]
     assert not (tmp_path / "run" / "checkpoints").exists()
+
+
+@pytest.mark.parametrize("method", ["cem", "random"])
+@pytest.mark.parametrize("discrete", [False, True])
+def test_plans_and_warmup_actions_on_another_device_than_the_generators(method, discrete):
+    """The planner's and the warm-up's draws come from CPU generators (a seed plans the same on
+    any device) and move to the observation's device: meta stands for CUDA here, where mixing
+    devices failed (a CUDA check of mbrl_pendulum, device=cuda)."""
+    meta = torch.device("meta")
+    if discrete:
+        coder = ActionCoder(num_actions=3)
+        model = ToyModel(2.0, coder, torch.tensor([-1.0, 0.0, 1.0]).to(meta))
+    else:
+        coder = ActionCoder(low=torch.tensor([-2.0]).to(meta), high=torch.tensor([2.0]).to(meta))
+        model = ToyModel(1.3, coder)
+    model.goal = torch.as_tensor(model.goal).to(meta)
+    plan = planner(model, coder, method)
+    observation = torch.zeros(4, 1, device=meta)
+    assert plan.plan(observation, torch.Generator().manual_seed(0)).device == meta
+    policy = MPCPolicy(plan, torch.Generator().manual_seed(0))
+    policy.warmup = True
+    with set_exploration_type(ExplorationType.RANDOM):
+        assert policy(observation).device == meta

@@ -63,16 +63,16 @@ class MPCPolicy(nn.Module):
         if exploration_type() != ExplorationType.RANDOM:
             action = self.planner.plan(flat, self._greedy.manual_seed(_EVAL_SEED))
         elif self.warmup:
-            action = self._random(len(flat)).to(observation.device)
+            action = self._random(len(flat), observation.device)
         else:
             action = self.planner.plan(flat, self.generator)
         return action.reshape(*batch_shape, *action.shape[1:])
 
-    def _random(self, n: int) -> torch.Tensor:
+    def _random(self, n: int, device: torch.device) -> torch.Tensor:
         coder = self.planner.coder
         if coder.discrete:
-            return torch.randint(coder.num_actions, (n,), generator=self.generator)
-        return coder.decode(torch.rand(n, coder.size, generator=self.generator) * 2 - 1)
+            return torch.randint(coder.num_actions, (n,), generator=self.generator).to(device)
+        return coder.decode(torch.rand(n, coder.size, generator=self.generator).to(device) * 2 - 1)
 
 
 _STORED_KEYS = (

@@ -246,13 +246,13 @@ class Planner:
         batch, device = observation.shape[0], observation.device
         shape = (batch, self.candidates, self.horizon, self.coder.size)
         if self.method == "random":
-            codes = torch.rand(shape, generator=generator, device=device) * 2 - 1
+            codes = torch.rand(shape, generator=generator).to(device) * 2 - 1
             best = self.returns(observation, codes).argmax(1)
             return self.coder.decode(codes[torch.arange(batch), best, 0])
         mean = torch.zeros(batch, 1, self.horizon, self.coder.size, device=device)
         std = torch.full_like(mean, self.init_std)
         for _ in range(self.iterations):
-            noise = torch.randn(shape, generator=generator, device=device)
+            noise = torch.randn(shape, generator=generator).to(device)
             codes = (mean + std * noise).clamp(-1, 1)
             elite = self._elites(observation, codes)
             mean, std = elite.mean(1, keepdim=True), elite.std(1, keepdim=True)
