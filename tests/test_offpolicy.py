@@ -86,6 +86,18 @@ def transitions(rows: int, start: int) -> TensorDict:
     )
 
 
+def test_a_loaded_leaf_storage_lives_on_its_device():
+    """A state dict read onto the CPU (as checkpoints are) loads onto the storage's device, where
+    the next writes go. Meta stands for CUDA here, where a resumed run's first write failed (a
+    CUDA check of sac_pendulum and dqn_cartpole resumed with compile=true)."""
+    saved = ReplayBuffer(storage=LeafStorage(10))
+    saved.extend(transitions(4, 0))
+    resumed = ReplayBuffer(storage=LeafStorage(10, device="meta"))
+    resumed.load_state_dict(saved.state_dict())
+    assert len(resumed) == 4
+    assert {leaf.device.type for leaf in resumed.storage._storage.values(True, True)} == {"meta"}
+
+
 def test_the_leaf_storage_is_torchrls_lazy_tensor_storage():
     """Both buffers fed the same writes (single rows, several rows, past the end so that the
     writes wrap around) hold the same rows, report the same length, write the same state dict,

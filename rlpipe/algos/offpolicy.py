@@ -142,7 +142,7 @@ class LeafStorage(LazyTensorStorage):
     a TensorDict holding exactly the storage's keys copy each leaf into the storage's tensor at
     the writer's index: TensorDict's ``__setitem__`` checks and routes each write, which on one
     transition costs several times the copies. The first write (which allocates the storage)
-    and any other data take TorchRL's path."""
+    and any other data take TorchRL's path. A loaded state lands on the storage's device."""
 
     def set(self, cursor: Any, data: Any, *, set_cursor: bool = True) -> None:
         if not self.initialized or self._storage_keys is not None or type(data) is not TensorDict:
@@ -157,6 +157,14 @@ class LeafStorage(LazyTensorStorage):
         for target, (_, value) in zip(targets, leaves, strict=True):
             target[cursor] = value
         self._bump_mutation_revision()
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        """TorchRL's load, then the storage on the storage's device: TorchRL keeps the loaded
+        tensors where they are, so a checkpoint read onto the CPU (as rlpipe reads them) left
+        a resumed CUDA run's buffer there, and its first write failed."""
+        super().load_state_dict(state_dict)
+        if isinstance(self._storage, TensorDictBase) and self._storage.device != self.device:
+            self._storage = self._storage.to(self.device)
 
 
 class ForeachSoftUpdate(SoftUpdate):

@@ -7,13 +7,14 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
 from torch import nn
-from torchrl.data import Bounded, LazyTensorStorage, ReplayBuffer
+from torchrl.data import Bounded, ReplayBuffer
 from torchrl.envs import EnvBase, ExplorationType
 from torchrl.envs.utils import exploration_type
 
 from rlpipe.algos.base import EnvAlgorithm, Metrics, batch_steps, episode_metrics
 from rlpipe.algos.configs import MBRLConfig
 from rlpipe.algos.mbrl.planning import ActionCoder, Planner, WorldModel
+from rlpipe.algos.offpolicy import LeafStorage
 from rlpipe.envs import is_discrete, num_actions, observation_size
 from rlpipe.errors import RlpipeError, check
 from rlpipe.models import instantiate, network_spec
@@ -138,7 +139,7 @@ class MBRL(EnvAlgorithm):
             self.model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay
         )
         self.buffer = ReplayBuffer(
-            storage=LazyTensorStorage(cfg.buffer_size, device=self.device),
+            storage=LeafStorage(cfg.buffer_size, device=self.device),
             batch_size=cfg.batch_size,
         )
         num_envs, steps = batch_steps(env, cfg.frames_per_batch)  # steps per iteration
