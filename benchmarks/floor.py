@@ -5,9 +5,10 @@ process.
 Each measurement is a fresh process training ``--frames`` frames of the preset on seed 0, one
 torch thread: the floor's loop, or ``rlpipe.train`` (``eval_every=0``: its training seconds
 exclude the final evaluation, as ``time/train_seconds`` records them). Rounds alternate the order
-(floor, rlpipe / rlpipe, floor); the table gives medians, their ratio, the work each did (env
-steps, gradient steps, minibatch rows) and each process's peak RSS. ``--learn`` also trains each
-floor for the preset's whole budget and evaluates it greedily: the floor's maths is no stub.
+(floor, rlpipe / rlpipe, floor); the table gives medians, their ratio, the ratio within each
+round (the machine's drift between rounds cancels), the work each did (env steps, gradient
+steps, minibatch rows) and each process's peak RSS. ``--learn`` also trains each floor for the
+preset's whole budget and evaluates it greedily: the floor's maths is no stub.
 ``--compile`` also times rlpipe with ``compile=true`` in the same rounds (its seconds include
 compiling) and reports the seconds torch spent compiling.
 
@@ -129,6 +130,7 @@ def rows(presets: list[str], results: dict, compiled: bool) -> list[list[str]]:
         floor, ours = results[preset, "floor"], results[preset, "rlpipe"]
         f = statistics.median(r["seconds"] for r in floor)
         o = statistics.median(r["seconds"] for r in ours)
+        paired = [b["seconds"] / a["seconds"] for a, b in zip(floor, ours, strict=True)]
 
         def work(rs: list[dict]) -> str:
             r = rs[0]
@@ -141,6 +143,7 @@ def rows(presets: list[str], results: dict, compiled: bool) -> list[list[str]]:
                 f"{f:.2f}",
                 f"{o:.2f}",
                 f"**{o / f:.2f}**",
+                f"{statistics.median(paired):.2f} ({min(paired):.2f}–{max(paired):.2f})",
                 work(floor),
                 work(ours),
                 f"{max(r['rss_mb'] for r in floor):.0f}",
@@ -176,6 +179,7 @@ def main() -> None:
         "floor s",
         "rlpipe s",
         "rlpipe / floor",
+        "rlpipe / floor, round by round: median (range)",
         "floor: env steps / gradient steps / rows",
         "rlpipe: env steps / gradient steps / rows",
         "floor peak RSS MB",
