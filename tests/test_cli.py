@@ -200,36 +200,25 @@ def test_cfg_job_prints_what_hydra_prints(tmp_path, overrides):
     assert ours.stdout == hydras.stdout and ours.stdout.startswith("env:\n")
 
 
-def test_a_pair_with_tuned_settings_runs_them_and_says_so(rlpipe_cli, tmp_path):
-    proc = rlpipe_cli(
-        "algo=ppo",
-        "env=cartpole",
-        "total_frames=512",
-        "eval_every=0",
-        "eval_episodes=1",
-        "progress=false",
-    )
+def first_line(rlpipe_cli, *choices: str) -> str:
+    """The first line a tiny run of ``choices`` prints (the run must succeed)."""
+    tiny = ("total_frames=512", "eval_every=0", "eval_episodes=1", "progress=false")
+    proc = rlpipe_cli(*choices, *tiny)
     assert proc.returncode == 0, proc.stderr
-    first = proc.stdout.splitlines()[0]
+    return proc.stdout.splitlines()[0]
+
+
+def test_a_pair_with_tuned_settings_runs_them_and_says_so(rlpipe_cli, tmp_path):
+    first = first_line(rlpipe_cli, "algo=ppo", "env=cartpole")
     assert first.startswith("rlpipe: ppo on env=cartpole with its tuned settings")
     assert "conf/tuned/ppo_cartpole.yaml" in first and "add ~tuned" in first
     assert "num_envs: 16" in (tmp_path / "run" / "config.yaml").read_text()
 
 
 def test_a_known_exploration_trap_is_named_at_start(rlpipe_cli):
-    """An env where the algorithm's defaults are known to fail (no tuned settings for the pair)
-    says so in one line at start; a pair with tuned settings says that instead."""
-    proc = rlpipe_cli(
-        "algo=ars",
-        "env=gym",
-        "env.id=MountainCarContinuous-v0",
-        "total_frames=2000",
-        "eval_every=0",
-        "eval_episodes=1",
-        "progress=false",
-    )
-    assert proc.returncode == 0, proc.stderr
-    first = proc.stdout.splitlines()[0]
+    """An env where the algorithm's defaults are known to fail (no tuned settings for the pair:
+    no claim of any) says so in one line at start."""
+    first = first_line(rlpipe_cli, "algo=ars", "env=gym", "env.id=MountainCarContinuous-v0")
     assert first.startswith("rlpipe: note: ars's defaults on MountainCarContinuous-v0: a known ")
     assert "exploration trap" in first and "gSDE" in first
     assert trap_notice("sac", "MountainCarContinuous-v0").startswith("rlpipe: note: sac's ")
