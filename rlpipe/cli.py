@@ -131,8 +131,7 @@ def check_choices(choices: DictConfig) -> None:
     preset = choices.get("experiment")
     if not preset:
         return
-    files = (folder / "experiment" / f"{preset}.yaml" for folder in ALGORITHMS.conf_folders())
-    source = next((path for path in files if path.is_file()), None)
+    source = ALGORITHMS.conf_file("experiment", preset)
     if source is None:  # a preset from a folder on hydra.searchpath: not ours to check
         return
     wanted = {
@@ -169,13 +168,13 @@ def trap_notice(algo: str, env_id: str) -> str | None:
 def tuned_notice(choices: DictConfig) -> str | None:
     """The line a run with tuned settings starts with (None: the algorithm's own defaults)."""
     tuned = choices.get("tuned")  # Hydra names the optional option even where no file is
-    files = [folder / "tuned" / f"{tuned}.yaml" for folder in ALGORITHMS.conf_folders()]
-    if not tuned or not any(path.is_file() for path in files):
+    if not tuned or ALGORITHMS.conf_file("tuned", tuned) is None:
         return None
     algo = choices.get("algo")
+    ours = importlib.resources.files("rlpipe.conf") / "tuned" / f"{tuned}.yaml"
     where = (
         f"conf/tuned/{tuned}.yaml, results in BENCHMARKS.md"
-        if files[0].is_file()
+        if ours.is_file()
         else f"tuned/{tuned}.yaml in {algo}'s config folder"
     )
     return (

@@ -124,6 +124,11 @@ class Registry(Mapping):
         """rlpipe's config folder (``rlpipe.conf``), then the plug-ins' (:meth:`search_path`)."""
         return [importlib.resources.files("rlpipe.conf"), *map(_folder, self.search_path())]
 
+    def conf_file(self, group: str, option: str) -> Traversable | None:
+        """The first ``<group>/<option>.yaml`` of :meth:`conf_folders` (rlpipe's first), or None."""
+        paths = (folder / group / f"{option}.yaml" for folder in self.conf_folders())
+        return next((path for path in paths if path.is_file()), None)
+
     def conf_options(self, group: str) -> list[str]:
         """The options that the YAML files of :meth:`conf_folders` give config ``group``."""
         folders = [folder / group for folder in self.conf_folders()]

@@ -13,7 +13,7 @@ from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.objectives import SoftUpdate
 
 from rlpipe.algos import DQN, SAC, DQNConfig, SACConfig
-from rlpipe.algos.offpolicy import LeafStorage
+from rlpipe.algos.storage import LeafStorage
 from rlpipe.config import EnvConfig
 from rlpipe.envs import make_env
 

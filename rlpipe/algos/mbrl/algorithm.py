@@ -14,7 +14,7 @@ from torchrl.envs.utils import exploration_type
 from rlpipe.algos.base import EnvAlgorithm, Metrics, batch_steps, episode_metrics
 from rlpipe.algos.configs import MBRLConfig
 from rlpipe.algos.mbrl.planning import ActionCoder, Planner, WorldModel
-from rlpipe.algos.offpolicy import LeafStorage
+from rlpipe.algos.storage import LeafStorage
 from rlpipe.envs import is_discrete, num_actions, observation_size
 from rlpipe.errors import RlpipeError, check
 from rlpipe.models import instantiate, network_spec
