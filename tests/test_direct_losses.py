@@ -89,6 +89,29 @@ def test_the_direct_forward_is_dqnloss(double_dqn, loss_function, steps):
             ForeachSoftUpdate(loss, tau=0.5).step()
 
 
+@pytest.mark.parametrize("loss_function", ["smooth_l1", "l2", "l1"])
+@pytest.mark.parametrize("reduction", ["mean", "sum", "none"])
+@pytest.mark.parametrize("rows", ["plain", "weighted", "masked"])
+def test_the_direct_dqn_loss_reduces_its_rows_as_dqnloss(loss_function, reduction, rows):
+    """The one-op distance (no weights, no mask) and TorchRL's path (weights, a mask, no
+    reduction) give DQNLoss's loss."""
+    kwargs = dict(delay_value=True, loss_function=loss_function, reduction=reduction)
+    theirs = DQNLoss(_actor(), action_space=Categorical(3), **kwargs)
+    ours = DirectDQNLoss(_actor(), action_space=Categorical(3), **kwargs)
+    for loss in (theirs, ours):
+        loss.make_value_estimator(gamma=0.9)
+    ours.load_state_dict(theirs.state_dict())
+    batches = _batch(), _batch()
+    for batch in batches:
+        if rows == "weighted":
+            batch["priority_weight"] = torch.linspace(0.1, 1.0, 64)
+        if rows == "masked":
+            batch["collector", "mask"] = torch.arange(64) % 3 != 0
+    a, b = theirs(batches[0])["loss"], ours(batches[1])["loss"]
+    assert b.shape == a.shape
+    torch.testing.assert_close(b, a)
+
+
 def test_a_wrong_target_fails_the_comparison():
     """The comparison can fail: a DirectDQNLoss whose target is a step behind differs."""
     theirs = DQNLoss(_actor(), action_space=Categorical(3), delay_value=True)

@@ -29,6 +29,8 @@ from rlpipe.models import TensorModule
 LOG_SQRT_2PI = math.log(math.sqrt(2 * math.pi))  # of the Normal's log-density
 # TorchRL's safetanh_noeps keeps tanh inside the open interval (-1, 1) by this margin
 TANH_LIMIT = 1.0 - torch.finfo(torch.float32).resolution
+# TorchRL's distance losses (distance_loss), each reducing its rows in the same op
+DISTANCES = {"l2": F.mse_loss, "l1": F.l1_loss, "smooth_l1": F.smooth_l1_loss}
 
 
 def inner_network(module: nn.Module) -> TensorModule:
@@ -105,25 +107,44 @@ class DirectDQNLoss(DQNLoss):
             target_value = td0_target(self, tensordict, next_value).squeeze(-1)
             priority = (chosen - target_value).pow(2).unsqueeze(-1)
         tensordict.set(self.tensor_keys.priority, priority, inplace=True)
-        loss = distance_loss(chosen, target_value, self.loss_function)
         weights = None
         if self.use_prioritized_weights in (True, "auto"):
             weights = tensordict.get(self.tensor_keys.priority_weight, None)
-        loss = self._reduce_loss(loss, tensordict=tensordict, weights=weights)
+        loss = reduced_distance(self, chosen, target_value, tensordict, weights)
         return TensorDict(loss=loss, q_mean=chosen.detach().mean())
 
 
 def td0_target(loss: nn.Module, tensordict: TensorDictBase, next_value: torch.Tensor):
     """TorchRL's TD(0) value estimate of ``loss``'s estimator: ``r + γ^k (1 - terminated) V'``
-    (``k``: the n-step transitions' ``steps_to_next_obs``, else 1)."""
+    (``k``: the n-step transitions' ``steps_to_next_obs``, else 1); a terminal state's ``V'``
+    counts as 0 whatever it holds."""
     estimator = loss.value_estimator
     keys, nxt = estimator.tensor_keys, tensordict.get("next")
     reward = nxt.get(keys.reward)
     gamma = estimator.gamma.to(reward.device)
     steps = tensordict.get(keys.steps_to_next_obs, None)
     if steps is not None:
-        gamma = gamma ** steps.view_as(reward)
-    return reward + gamma * (~nxt.get(keys.terminated)).int() * next_value
+        gamma = gamma.pow(steps.view_as(reward))
+    return reward + gamma * next_value.masked_fill(nxt.get(keys.terminated), 0.0)
+
+
+def reduced_distance(
+    loss: nn.Module,
+    predicted: torch.Tensor,
+    target: torch.Tensor,
+    tensordict: TensorDictBase,
+    weights: torch.Tensor | None,
+) -> torch.Tensor:
+    """``loss._reduce_loss(distance_loss(predicted, target, loss.loss_function), ...)``: one
+    reducing op where no weights and no mask (``loss``'s mask keys) touch the rows."""
+    fused = DISTANCES.get(loss.loss_function)
+    masked = any(tensordict.get(key, None) is not None for key in loss._loss_mask_keys())
+    if fused is None or weights is not None or masked or loss.reduction == "none":
+        distance = distance_loss(predicted, target, loss.loss_function)
+        return loss._reduce_loss(distance, tensordict, weights=weights)
+    if predicted.shape != target.shape:  # distance_loss's check
+        raise RuntimeError(f"shapes {predicted.shape} and {target.shape} differ")
+    return fused(predicted, target, reduction=loss.reduction)
 
 
 class DirectSACLoss(SACLoss):
