@@ -28,14 +28,14 @@ from pathlib import Path
 from common import load_span, parser, publish_section, read_scalar, section_head, table
 
 FRAMES = {"dqn_cartpole": 20_000, "sac_pendulum": 5_000, "ppo_cartpole": 20_480}
-# (part, substrings of a frame "function (file:line)", or its start after a ^: any one matches),
-# the innermost match wins
+# (part, substrings of a frame "function (file:line)", or after a ^ its start with the function's
+# class left out (py-spy 0.4 writes "Class.method"): any one matches), the innermost match wins
 PARTS = [
     ("env step", ["gymnasium/envs/", "gymnasium/vector/", "envpool/"]),
     ("n-step", ["torchrl/data/postprocs", "n_step_transitions ("]),
     ("buffer extend", ["extend (torchrl/data/", "set (torchrl/data/replay_buffers"]),
     ("buffer sample", ["sample (torchrl/data/", "get (torchrl/data/replay_buffers"]),
-    ("value estimator", ["torchrl/objectives/value/"]),
+    ("value estimator", ["torchrl/objectives/value/", "td0_target ("]),
     ("optimizer", ["torch/optim/"]),
     ("backward", ["torch/autograd/", "backward (torch/_tensor.py"]),
     ("target update", ["^step (torchrl/objectives/utils.py", "^step (rlpipe/algos/offpolicy.py"]),
@@ -45,13 +45,19 @@ PARTS = [
 LOOP = "train_step ("  # the training step's frame: samples outside it are start-up and the rest
 
 
+def own(frame: str) -> str:
+    """A frame without its function's class: ``"step (f.py:1)"`` of ``"Soft.step (f.py:1)"``."""
+    name, sep, where = frame.partition(" (")
+    return name.rpartition(".")[2] + sep + where
+
+
 def part(stack: list[str]) -> str | None:
     """The part of the loop a sampled stack (outermost first) is in; None outside a step."""
     if not any(LOOP in frame for frame in stack):
         return None
     for frame in reversed(stack):
         for name, marks in PARTS:
-            if any(frame.startswith(m[1:]) if m[0] == "^" else m in frame for m in marks):
+            if any(own(frame).startswith(m[1:]) if m[0] == "^" else m in frame for m in marks):
                 return name
         if LOOP in frame:
             return "loop"

@@ -29,6 +29,13 @@ def bench():
         (["main (rlpipe/cli.py:10)", "build (rlpipe/algos/dqn.py:80)"], None),  # not a step
         ([STEP], "loop"),  # the step's own frame is no target update (…_step (…offpolicy.py)
         ([STEP, "step (rlpipe/algos/offpolicy.py:150)"], "target update"),
+        ([STEP, "ForeachSoftUpdate.step (rlpipe/algos/offpolicy.py:150)"], "target update"),
+        ([STEP, "SoftUpdate.step (torchrl/objectives/utils.py:9)"], "target update"),
+        ([STEP, "OffPolicy.train_step (rlpipe/algos/offpolicy.py:101)"], "loop"),
+        (
+            [STEP, "Direct.forward (rlpipe/algos/direct.py:91)", "td0_target (rlpipe/x.py:3)"],
+            "value estimator",
+        ),
         (
             [STEP, "forward (rlpipe/algos/direct.py:91)", "forward (torch/nn/modules/linear.py:1)"],
             "loss forward",
