@@ -117,7 +117,9 @@ def main() -> None:
         "Where the training time goes",
         ["torch", "torchrl", "tensordict", "gymnasium"],
         load_span(start, os.getloadavg()),
-        "seed 0, gymnasium's envs, one torch thread, no evaluation; per part, seconds (and share) "
+        "seed 0, each checkout's default env backend (env.backend=auto, where a checkout has it: "
+        "EnvPool for CartPole-v1, gymnasium for Pendulum-v1), one torch thread, no evaluation; "
+        "per part, seconds (and share) "
         f"of the training step by its py-spy samples ({args.rate} Hz, not pausing the process); "
         "train s: time/train_seconds under sampling",
         f"frames: {', '.join(f'{k} {v:,}' for k, v in FRAMES.items() if k in args.presets)}",
