@@ -44,6 +44,7 @@ EXPECTED_IDS = {
     "cartpole": "CartPole-v1",
     "mountaincar": "MountainCar-v0",
     "lunarlander": "LunarLander-v3",
+    "acrobot": "Acrobot-v1",
     "pendulum": "Pendulum-v1",
     "bipedal": "BipedalWalker-v3",
     "bipedal_hardcore": "BipedalWalker-v3",

@@ -71,7 +71,7 @@ class DQN(OffPolicy):
             raise RlpipeError(
                 f"DQN needs a discrete action space, but this env's actions are "
                 f"{type(env.action_spec_unbatched).__name__} (continuous); pick a discrete env "
-                "(cartpole, mountaincar, lunarlander) or another algorithm"
+                "(cartpole, mountaincar, lunarlander, acrobot) or another algorithm"
             )
         spec = env.action_spec_unbatched.to(self.device)
         n = spec.space.n
