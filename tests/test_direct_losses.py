@@ -28,6 +28,7 @@ from rlpipe.algos.direct import (
     DirectPPOLoss,
     DirectSACLoss,
     tanh_normal_rsample,
+    td0_target,
 )
 from rlpipe.algos.offpolicy import ForeachSoftUpdate
 from rlpipe.encoders import EncodeFirst
@@ -110,6 +111,23 @@ def test_the_direct_dqn_loss_reduces_its_rows_as_dqnloss(loss_function, reductio
     a, b = theirs(batches[0])["loss"], ours(batches[1])["loss"]
     assert b.shape == a.shape
     torch.testing.assert_close(b, a)
+
+
+def test_a_terminal_state_bootstraps_nothing_whatever_its_value():
+    """``r + γ^k V'`` where the episode goes on; ``r`` at a terminal state, even where ``V'`` is
+    not finite there (TorchRL's ``(1 - terminated) · V'`` would give nan)."""
+    loss = DirectDQNLoss(_actor(), action_space=Categorical(3), delay_value=True)
+    loss.make_value_estimator(gamma=0.9)
+    batch = _batch(8)
+    terminated = batch["next", "terminated"]
+    assert terminated.any() and not terminated.all()
+    next_value = torch.where(terminated, torch.nan, torch.ones(8, 1))
+    expected = torch.where(
+        terminated,
+        batch["next", "reward"],
+        batch["next", "reward"] + 0.9 ** batch["steps_to_next_obs"].float(),
+    )
+    torch.testing.assert_close(td0_target(loss, batch, next_value), expected)
 
 
 def test_a_wrong_target_fails_the_comparison():
