@@ -104,7 +104,7 @@ def test_multirun_sweeps_seeds(tmp_path):
 
 BAD_INPUTS = [
     (["algo=nope"], "unknown algo option 'nope'; choose one of: "),
-    (["env=nope"], "unknown env option 'nope'; choose one of: bipedal"),
+    (["env=nope"], "unknown env option 'nope'; choose one of: acrobot, bipedal"),
     (
         ["logger=nope"],
         "unknown logger option 'nope'; choose one of: csv, mlflow, none, tensorboard, wandb",
