@@ -220,6 +220,6 @@ def test_a_known_exploration_trap_is_named_at_start(rlpipe_cli):
     no claim of any) says so in one line at start."""
     first = first_line(rlpipe_cli, "algo=ars", "env=gym", "env.id=MountainCarContinuous-v0")
     assert first.startswith("rlpipe: note: ars's defaults on MountainCarContinuous-v0: a known ")
-    assert "exploration trap" in first and "gSDE" in first
+    assert "exploration trap" in first and "algo=sac env=mountaincar_continuous" in first
     assert trap_notice("sac", "MountainCarContinuous-v0").startswith("rlpipe: note: sac's ")
     assert trap_notice("sac", "Pendulum-v1") is None

@@ -43,6 +43,7 @@ def test_default_is_dqn_on_cartpole():
 EXPECTED_IDS = {
     "cartpole": "CartPole-v1",
     "mountaincar": "MountainCar-v0",
+    "mountaincar_continuous": "MountainCarContinuous-v0",
     "lunarlander": "LunarLander-v3",
     "acrobot": "Acrobot-v1",
     "pendulum": "Pendulum-v1",
@@ -99,6 +100,7 @@ PRESET_ENVS = {
     "ppo_minigrid_pixels": "rlpipe/MiniGrid-Empty-5x5-Pixels-v0",
     "sac_pendulum": "Pendulum-v1",
     "sac_bipedal": "BipedalWalker-v3",
+    "sac_mountaincar_continuous": "MountainCarContinuous-v0",
 }
 
 

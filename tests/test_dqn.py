@@ -9,9 +9,10 @@ import pytest
 import torch
 from tensordict import TensorDict
 from torchrl.data.postprocs import MultiStep
+from torchrl.envs import RewardScaling
 
 from rlpipe.algos import DQN, Algorithm, DQNConfig
-from rlpipe.algos.dqn import epsilon, learning_rate, n_step_transitions
+from rlpipe.algos.dqn import HeldActions, epsilon, learning_rate, n_step_transitions
 from rlpipe.config import EnvConfig
 from rlpipe.envs import make_env
 from rlpipe.errors import RlpipeError
@@ -183,6 +184,7 @@ def test_lr_and_grad_norm_follow_the_config():
         ({"lr_end": -1.0}, "lr_end"),
         ({"max_grad_norm": 0.0}, "max_grad_norm"),
         ({"target_update_every": -1}, "target_update_every"),
+        ({"eps_zeta": 1.0}, "algo.eps_zeta must be null or > 1"),
     ],
 )
 def test_bad_schedule_values(kwargs, message):
@@ -247,3 +249,45 @@ def test_total_frames_is_exact_to_whole_steps_of_the_copies(tmp_path, total, exp
     assert len(torch.unique(steps, dim=0)) == expected  # no step stored twice
     algo.close()
     eval_env.close()
+
+
+def test_held_random_actions_last_zeta_distributed_steps_then_greedy_returns():
+    torch.manual_seed(0)
+    copies = 20_000
+    held = HeldActions(2.0, copies, device=torch.device("cpu"))
+    greedy, random = torch.zeros(copies, dtype=torch.long), torch.ones(copies, dtype=torch.long)
+    start, never = torch.ones(copies, dtype=torch.bool), torch.zeros(copies, dtype=torch.bool)
+    steps = [held(start, random, greedy)]  # every copy starts a hold of action 1
+    steps += [held(never, random, greedy) for _ in range(200)]  # then no new holds
+    steps = torch.stack(steps)
+    lengths = (steps == 1).sum(0)
+    # a hold, once over, is over: greedy's 0 from then on
+    assert torch.equal(steps, (torch.arange(201).unsqueeze(1) < lengths).long())
+    # P(n) = n^-2 / zeta(2) over n <= 10,000: P(1) ≈ 0.608, P(2) ≈ 0.152, P(n > 200) ≈ 0.003
+    assert abs((lengths == 1).float().mean().item() - 0.608) < 0.02
+    assert abs((lengths == 2).float().mean().item() - 0.152) < 0.015
+    assert (lengths > 200).float().mean().item() < 0.01
+
+
+def test_eps_zeta_holds_the_collecting_policy_s_random_actions():
+    torch.manual_seed(0)
+    env = partial(make_env, EnvConfig(num_envs=2), seed=0)
+    algo = DQN(env, DQNConfig(**SMALL, eps_start=1.0, eps_end=1.0, eps_zeta=1.5))
+    steps = iter(range(1000))
+    values = torch.tensor([[0.0, 1.0], [1.0, 0.0]])
+    algo._q_network = lambda obs: values[next(steps) % 2].expand(len(obs), 2)  # greedy flips
+    obs = make_env(EnvConfig(num_envs=2), seed=1).reset()["observation"]
+    actions = torch.stack([algo._explore(obs)["action"] for _ in range(400)])
+    repeats = (actions[1:] == actions[:-1]).float().mean().item()
+    assert repeats > 0.75  # every step random: plain ε-greedy repeats half the time (2 actions)
+    algo.close()
+
+
+def test_eps_zeta_on_torchrl_s_collector_is_one_line():
+    def scaled_env():  # a transform make_env does not add: TorchRL's Collector runs it
+        env = make_env(EnvConfig(num_envs=2), seed=0)
+        env.append_transform(RewardScaling(0.0, 2.0))
+        return env
+
+    with pytest.raises(RlpipeError, match="algo.eps_zeta needs an env made by rlpipe.make_env"):
+        DQN(scaled_env, DQNConfig(**SMALL, eps_zeta=2.0))

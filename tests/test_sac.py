@@ -1,16 +1,20 @@
-"""SAC from TorchRL parts: the tanh-Gaussian actor, twin critics and entropy tuning, bad input."""
+"""SAC from TorchRL parts: the tanh-Gaussian actor, twin critics, entropy tuning, coloured
+exploration noise, bad input."""
 
 from __future__ import annotations
 
 from functools import partial
 
+import pytest
 import torch
 from conftest import TINY
-from torchrl.envs import ExplorationType, set_exploration_type
+from torchrl.envs import ExplorationType, RewardScaling, set_exploration_type
 
 from rlpipe.algos import SAC, Algorithm, SACConfig
+from rlpipe.algos.noise import ColoredNoise, powerlaw_noise
 from rlpipe.config import EnvConfig
 from rlpipe.envs import make_env
+from rlpipe.errors import RlpipeError
 
 SMALL = dict(
     batch_size=16,
@@ -54,6 +58,20 @@ def test_updates_move_actor_critics_and_alpha_and_the_targets_follow():
     algo.close()
 
 
+def test_fixed_alpha_stays_at_its_start():
+    torch.manual_seed(0)
+    algo = SAC(
+        partial(make_env, PENDULUM, seed=0), SACConfig(**SMALL, alpha_init=0.1, fixed_alpha=True)
+    )
+    metrics = {}
+    while "train/loss" not in metrics:
+        metrics = algo.train_step()
+    metrics = algo.train_step()
+    assert abs(metrics["train/alpha"] - 0.1) < 1e-6
+    assert "log_alpha" not in dict(algo.loss.named_parameters())
+    algo.close()
+
+
 def test_discrete_env_is_one_line(rlpipe_cli):
     done = rlpipe_cli(*TINY, "algo=sac", "env=cartpole")
     assert done.returncode == 2
@@ -72,3 +90,48 @@ def test_cli_trains_sac(rlpipe_cli):
     )
     assert done.returncode == 0, done.stderr
     assert "200 frames" in done.stdout
+
+
+def lag_one_correlation(draws: torch.Tensor) -> float:
+    """The correlation of ``[steps, ...]`` draws with the next step's, over every entry."""
+    centred = draws - draws.mean(0)
+    return float((centred[1:] * centred[:-1]).mean() / centred.square().mean())
+
+
+def test_coloured_noise_has_unit_variance_and_correlates_more_as_beta_grows():
+    torch.manual_seed(0)
+    lags = []
+    for beta in (0.0, 1.0, 2.0):
+        draws = powerlaw_noise(beta, (400,), 500)
+        assert draws.shape == (400, 500)
+        assert abs(draws.var(dim=-1).mean().item() - 1) < 0.05  # unit variance about its mean
+        lags.append(lag_one_correlation(draws.T))
+    assert abs(lags[0]) < 0.02 and 0.6 < lags[1] < 0.9 and lags[2] > 0.95, lags
+    noise = ColoredNoise(1.0, (3, 2), steps=4)
+    steps = [noise() for _ in range(9)]  # two sequences of 4 used up, the third begun
+    assert all(step.shape == (3, 2) for step in steps)
+    assert not torch.equal(torch.stack(steps[:4]), torch.stack(steps[4:8]))
+
+
+def test_coloured_noise_colours_the_collecting_draws_only():
+    torch.manual_seed(0)
+    algo = SAC(partial(make_env, PENDULUM, seed=0), SACConfig(**SMALL, noise_color=2.0))
+    obs = make_env(PENDULUM, seed=1).reset()["observation"]
+    with torch.no_grad():
+        actions = torch.stack([algo._explore(obs)["action"] for _ in range(200)])
+    assert actions.shape == (200, 2, 1) and actions.abs().max() <= 2.0
+    assert lag_one_correlation(actions) > 0.8  # white draws: about 0
+    algo.close()
+
+
+def test_coloured_noise_on_torchrl_s_collector_is_one_line():
+    def scaled_env():  # a transform make_env does not add: TorchRL's Collector runs it
+        env = make_env(PENDULUM, seed=0)
+        env.append_transform(RewardScaling(0.0, 2.0))
+        return env
+
+    SAC(scaled_env, SACConfig(**SMALL)).close()  # white noise: fine on any env
+    with pytest.raises(RlpipeError, match="algo.noise_color needs an env made by rlpipe.make_env"):
+        SAC(scaled_env, SACConfig(**SMALL, noise_color=1.0))
+    with pytest.raises(RlpipeError, match="algo.noise_steps must be >= 2"):
+        SACConfig(**SMALL, noise_color=1.0, noise_steps=1)

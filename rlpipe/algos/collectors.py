@@ -28,6 +28,7 @@ from torchrl.data.utils import torch_to_numpy_dtype_dict
 from torchrl.envs import EnvBase, ExplorationType, set_exploration_type
 
 from rlpipe.envs import EnvCopies, env_copies
+from rlpipe.errors import RlpipeError
 
 # what collects on plain tensors: a batch of observations (on the algorithm's device) -> the
 # policy's outputs the algorithm reads, by batch key, "action" among them (e.g. PPO's sample
@@ -200,6 +201,17 @@ def policy_action(
         return {key: out.get(key) for key in keys}
 
     return act
+
+
+def lean_collection(env: EnvBase, option: str, off: str) -> None:
+    """Refuse, in one line, an ``option`` that only the lean loop's collecting policy (``act``)
+    knows, on an env that TorchRL's ``Collector`` would step (no :func:`rlpipe.make_env`
+    env); ``off``: the option's value that turns it off."""
+    if env_copies(env) is None:
+        raise RlpipeError(
+            f"{option} needs an env made by rlpipe.make_env, whose copies rlpipe steps itself "
+            f"(TorchRL's Collector would ignore it); use make_env's env or {option}={off}"
+        )
 
 
 def make_collector(

@@ -92,6 +92,9 @@ class DQNConfig(OffPolicyConfig):
     # exp: eps_end + (eps_start - eps_end) * exp(-t / eps_decay); linear: annealed over eps_decay
     eps_schedule: str = checked("exp", choices=EPS_SCHEDULES)
     eps_decay: int = checked(1000, "at_least_one")  # frames
+    # εz-greedy: each random action held for n steps, P(n) ∝ n^-eps_zeta (e.g. 2; > 1);
+    # null: one step (ε-greedy)
+    eps_zeta: float | None = None
     # env frames collected per iteration (across all envs), then as many gradient steps: one
     # per frame, as the notebook
     frames_per_batch: int = checked(4, "at_least_one")
@@ -109,6 +112,10 @@ class DQNConfig(OffPolicyConfig):
             f"algo.max_grad_norm must be null or > 0, got {self.max_grad_norm}",
         )
         check(
+            self.eps_zeta is None or self.eps_zeta > 1,
+            f"algo.eps_zeta must be null or > 1, got {self.eps_zeta}",
+        )
+        check(
             0 <= self.eps_end <= self.eps_start <= 1,
             f"need 0 <= algo.eps_end <= algo.eps_start <= 1, got {self.eps_end}, {self.eps_start}",
         )
@@ -123,7 +130,21 @@ class SACConfig(OffPolicyConfig):
     eval_every: int = 5_000
     hidden_sizes: list[int] = checked([256, 256], "sizes")  # actor's and each critic's
     alpha_init: float = checked(1.0, "positive")  # the entropy coefficient's start
+    # true: alpha_init all run (SB3's ent_coef=<number>); false: tuned towards target_entropy
+    fixed_alpha: bool = False
     target_entropy: float | None = None  # null: minus the action dimensions
+    # exploration noise's colour: the collecting policy's Gaussian draws correlated in time with
+    # a power spectrum 1/f^β: 0 white (independent draws, SAC's own), 1 pink, 2 red (Brownian,
+    # like OU noise); each env copy's draws are sequences of noise_steps steps
+    noise_color: float = checked(0.0, "non_negative")
+    noise_steps: int = checked(1000, "at_least_one")
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        check(
+            self.noise_steps >= 2 or not self.noise_color,
+            f"algo.noise_steps must be >= 2 for coloured noise, got {self.noise_steps}",
+        )
 
 
 @dataclass

@@ -14,6 +14,7 @@ from torchrl.modules import EGreedyModule, QValueActor
 from torchrl.objectives import HardUpdate
 
 from rlpipe.algos.base import TRANSITION_KEYS, Metrics, batch_steps
+from rlpipe.algos.collectors import lean_collection
 from rlpipe.algos.configs import DQNConfig
 from rlpipe.algos.direct import DirectDQNLoss, inner_network
 from rlpipe.algos.offpolicy import ForeachSoftUpdate, OffPolicy
@@ -50,6 +51,32 @@ def n_step_transitions(batch: TensorDictBase, multistep: MultiStep) -> TensorDic
         if ("next", key) in batch.keys(True):
             out["next", key] = batch["next", key].gather(1, last)
     return out
+
+
+class HeldActions:
+    """εz-greedy (Dabney et al. 2021, "Temporally-extended ε-greedy exploration"): a random
+    action, once drawn, is repeated for n steps, n from a zeta distribution (P(n) ∝ n^-μ,
+    n ≤ 10,000), one hold per env copy; between holds, ε-greedy's choice."""
+
+    def __init__(self, mu: float, copies: int, device: torch.device, longest: int = 10_000):
+        weights = torch.arange(1, longest + 1, dtype=torch.float64).pow(-mu)
+        self._cdf = (weights.cumsum(0) / weights.sum()).float().to(device)
+        self._left = torch.zeros(copies, dtype=torch.long, device=device)  # steps still held
+        self._action = torch.zeros(copies, dtype=torch.long, device=device)
+
+    def __call__(
+        self, explore: torch.Tensor, random: torch.Tensor, greedy: torch.Tensor
+    ) -> torch.Tensor:
+        """This step's actions: a held one where a hold goes on, a new hold where ``explore``
+        draws one, else ``greedy``."""
+        holding = self._left > 0
+        start = explore & ~holding
+        draws = torch.rand(start.shape, device=start.device)
+        steps = torch.searchsorted(self._cdf, draws, right=True) + 1  # n >= 1
+        steps = steps.clamp_max(len(self._cdf))  # float rounding at the top
+        self._action = torch.where(start, random, self._action)
+        self._left = torch.where(start, steps, self._left) - (holding | start).long()
+        return torch.where(holding | start, self._action, greedy)
 
 
 class DQN(OffPolicy):
@@ -112,16 +139,23 @@ class DQN(OffPolicy):
         )
         self.multistep = MultiStep(cfg.gamma, cfg.n_steps) if cfg.n_steps > 1 else None
         self._q_network = inner_network(self.policy).module
+        self._held = None
+        if cfg.eps_zeta is not None:
+            lean_collection(env, "algo.eps_zeta", "null")
+            self._held = HeldActions(cfg.eps_zeta, env.batch_size.numel(), self.device)
         self.start_loop(env, TensorDictSequential(self.policy, self.exploration), act=self._explore)
 
     def _explore(self, observation: torch.Tensor) -> dict[str, torch.Tensor]:
         """The collecting policy on plain tensors, ``EGreedyModule``'s ε-greedy with its random
         draws: with probability ε (``self.exploration.eps``) a uniformly random action, else the
-        Q-network's argmax."""
+        Q-network's argmax; with ``cfg.eps_zeta``, each random action then held for a duration
+        of its own (:class:`HeldActions`)."""
         values = self._q_network(observation)
         greedy = values.argmax(-1)
         explore = torch.rand(greedy.shape, device=greedy.device) < self.exploration.eps
         random = torch.randint_like(greedy, values.shape[-1])  # drawn in EGreedyModule's order
+        if self._held is not None:
+            return {"action": self._held(explore, random, greedy)}
         return {"action": torch.where(explore, random, greedy)}
 
     def follow_schedules(self) -> None:

@@ -16,8 +16,10 @@ from torchrl.data import Bounded
 from torchrl.envs import EnvBase
 from torchrl.modules import MLP, ProbabilisticActor, TanhNormal
 
+from rlpipe.algos.collectors import lean_collection
 from rlpipe.algos.configs import SACConfig
 from rlpipe.algos.direct import TANH_LIMIT, DirectSACLoss, inner_network
+from rlpipe.algos.noise import ColoredNoise
 from rlpipe.algos.offpolicy import ForeachSoftUpdate, OffPolicy
 from rlpipe.encoders import EncodeFirst, encoder
 from rlpipe.envs import is_discrete
@@ -26,12 +28,19 @@ from rlpipe.models import TensorModule
 
 
 def tanh_normal_sample(
-    loc: torch.Tensor, scale: torch.Tensor, middle: torch.Tensor, half: torch.Tensor
+    loc: torch.Tensor,
+    scale: torch.Tensor,
+    middle: torch.Tensor,
+    half: torch.Tensor,
+    draw: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """The action :func:`~rlpipe.algos.direct.tanh_normal_rsample` draws (the same random draw
     and value) on bounds ``middle ± half``, without its log-probability and gradient: what
-    collecting needs, at a fraction of the cost."""
-    preimage = loc + torch.empty_like(loc).normal_() * scale  # Normal.rsample's draw
+    collecting needs, at a fraction of the cost. ``draw``: the standard-normal draw to use
+    (e.g. coloured noise's), instead of a fresh one."""
+    if draw is None:
+        draw = torch.empty_like(loc).normal_()  # Normal.rsample's draw
+    preimage = loc + draw * scale
     return middle + half * preimage.tanh().clamp(-TANH_LIMIT, TANH_LIMIT)
 
 
@@ -41,7 +50,11 @@ class SAC(OffPolicy):
     The off-policy loop (:class:`~rlpipe.algos.offpolicy.OffPolicy`) with the sampling policy
     collecting and Adam steps on TorchRL's SACLoss (actor, twin Q critics and the entropy
     coefficient, tuned towards ``cfg.target_entropy``), each followed by a soft update of the
-    target critics. The greedy policy is the tanh of the Gaussian's mean.
+    target critics. The greedy policy is the tanh of the Gaussian's mean. With
+    ``cfg.noise_color`` β > 0, the collecting policy's standard-normal draws are coloured noise
+    (:class:`~rlpipe.algos.noise.ColoredNoise`, per env copy and action dimension), correlated in
+    time: exploration that keeps a direction for a while, which sparse-reward envs such as
+    MountainCarContinuous need; the losses keep their own independent draws.
     ``network`` (or ``cfg.network``): the actor's network, observations to a mean and a
     pre-softplus std per action dimension.
     """
@@ -54,7 +67,8 @@ class SAC(OffPolicy):
             raise RlpipeError(
                 f"SAC needs continuous actions (a bounded flat box), but this env's actions are "
                 f"{type(spec).__name__} of shape {tuple(spec.shape)}; pick a continuous env "
-                "(pendulum, bipedal, cartpole_continuous) or algo=dqn or algo=ppo"
+                "(pendulum, bipedal, cartpole_continuous, mountaincar_continuous) or algo=dqn "
+                "or algo=ppo"
             )
         size, n_obs = spec.shape[0], self.observation.in_features
         outputs = f"a mean and a pre-softplus std per action dimension ({size}), in that order"
@@ -85,6 +99,7 @@ class SAC(OffPolicy):
             qvalue,
             num_qvalue_nets=2,
             alpha_init=cfg.alpha_init,
+            fixed_alpha=cfg.fixed_alpha,
             target_entropy=-float(size) if cfg.target_entropy is None else cfg.target_entropy,
             loss_function="l2",
             deactivate_vmap=True,  # the two critics in a loop: cheaper than torch.vmap on CPU
@@ -95,12 +110,19 @@ class SAC(OffPolicy):
         self._actor = inner_network(self.policy).module
         low, high = (torch.as_tensor(b, device=self.device) for b in self.loss.bounds)
         self._bounds = (high + low) / 2, (high - low) / 2
+        self._noise = None
+        if cfg.noise_color:
+            lean_collection(env, "algo.noise_color", "0")
+            copies = (env.batch_size.numel(), size)
+            self._noise = ColoredNoise(cfg.noise_color, copies, cfg.noise_steps, self.device)
         self.start_loop(env, self.policy, act=self._explore)
 
     def _explore(self, observation: torch.Tensor) -> dict[str, torch.Tensor]:
         """The collecting policy on plain tensors: a TanhNormal draw on the actor's network's
-        ``(loc, scale)``, the one the ``ProbabilisticActor`` draws."""
-        return {"action": tanh_normal_sample(*self._actor(observation), *self._bounds)}
+        ``(loc, scale)``, the one the ``ProbabilisticActor`` draws (or, with coloured noise,
+        the next step of the noise)."""
+        draw = None if self._noise is None else self._noise()
+        return {"action": tanh_normal_sample(*self._actor(observation), *self._bounds, draw)}
 
     def start_from(self, state: dict[str, Any], parts: Collection[str], parent: Any) -> None:
         super().start_from(state, parts, parent)  # α is learned: it comes with the weights,
