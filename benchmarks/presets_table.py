@@ -47,6 +47,8 @@ class Preset:
     # hours-long presets: both sides save at every eval, and a call that finds an interrupted
     # run in --out continues it (rlpipe from its newest checkpoint, SB3 from its newest save)
     resumable: bool = False
+    # where the preset stays short of 8 of 10 held-out seeds: why, and what was tried
+    short_of: str = ""
 
     def normalised(self, score: float) -> float:
         """``score`` on the scale where the random policy is 0 and the target 1."""

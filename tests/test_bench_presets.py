@@ -117,6 +117,20 @@ def test_presets_without_sb3_say_why(bench) -> None:
     assert row["SB3 solved"] == "SB3 has no model-based RL" and row["solved"] == "1/1"
 
 
+def test_a_preset_short_of_8_of_10_says_so_in_its_row_and_note(bench) -> None:
+    report = bench.report
+    preset = bench.presets_table.PRESETS["mbrl_pendulum"]
+    short = bench.presets_table.Preset(**{**vars(preset), "short_of": "tried A and B"})
+    cfg = SimpleNamespace(total_frames=30_000, eval_episodes=10, eval_every=2_000)
+    ours = report.Side(short, [run(bench, 100, [-300, -200, -180], -190.0)])
+    row = dict(
+        zip(report.HEADERS, report.summary_row(short, cfg, ours, report.Side(short, []), "M1"))
+    )
+    assert row["solved"] == "1/1 (short of 8/10: see its note)"
+    assert report.note(short, cfg).endswith("**short of 8 of 10 held-out seeds**: tried A and B")
+    assert "short of" not in report.note(preset, cfg)
+
+
 def test_the_aggregate_is_normalised_by_the_target(bench) -> None:
     table, report = bench.presets_table, bench.report
     cartpole, pendulum = table.PRESETS["dqn_cartpole"], table.PRESETS["sac_pendulum"]
