@@ -32,7 +32,7 @@ import numpy as np
 from common import machine, read_scalar
 from presets_table import Preset
 
-from rlpipe.config import Config, fingerprint
+from rlpipe.config import Config, config_class, fingerprint
 from rlpipe.rundir import RunDir
 
 PACKAGES = ["torch", "torchrl", "tensordict", "gymnasium", "stable_baselines3", "sb3_contrib"]
@@ -115,13 +115,24 @@ def identity(cfg: Config) -> dict:
     return json.loads(json.dumps(kept, default=str))  # as a record reads back
 
 
+def same_identity(saved: dict, cfg: Config) -> bool:
+    """Whether a record's identity (``saved``) stands for a run of ``cfg``: every key equal,
+    and a key the record lacks (a config field added since it ran) at its default, which is
+    what the run had before the field existed."""
+    ours = identity(cfg)
+    defaults = identity(Config(algo=config_class(cfg.algo.name)()))
+    return set(saved) <= set(ours) and all(
+        saved[k] == v if k in saved else defaults.get(k, object()) == v for k, v in ours.items()
+    )
+
+
 def rlpipe_finished(out: Path, cfg: Config | None = None) -> bool:
     """Whether ``out`` (a job's dir in ``--out``) holds the record of a finished and evaluated
     rlpipe run of ``cfg`` (a preset changed since: not finished), or such a run from before
     records held the evals."""
     meta = out / "rlpipe.json"
     if meta.is_file() and "evals" in (saved := json.loads(meta.read_text())):
-        return cfg is None or saved.get("config") == identity(cfg)
+        return cfg is None or same_identity(saved.get("config", {}), cfg)
     return (out / "run" / "summary.json").is_file() and bool(final_evals(out / "run"))
 
 

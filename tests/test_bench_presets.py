@@ -131,6 +131,20 @@ def test_a_preset_short_of_8_of_10_says_so_in_its_row_and_note(bench) -> None:
     assert "short of" not in report.note(preset, cfg)
 
 
+def test_a_record_from_before_a_config_field_existed_still_stands_at_its_default(bench) -> None:
+    from rlpipe.cli import compose_run
+
+    runs = bench.presets_runs
+    cfg = compose_run("+experiment=dqn_cartpole")
+    saved = runs.identity(cfg)
+    assert runs.same_identity(saved, cfg)
+    older = {k: v for k, v in saved.items() if k != "algo.eps_zeta"}  # before the field
+    assert runs.same_identity(older, cfg)  # the new field at its default: the same run
+    assert not runs.same_identity(older, compose_run("+experiment=dqn_cartpole", "algo.eps_zeta=2"))
+    assert not runs.same_identity({**saved, "algo.lr": 1.0}, cfg)
+    assert not runs.same_identity({**saved, "algo.gone": 1}, cfg)  # a field since removed
+
+
 def test_the_aggregate_is_normalised_by_the_target(bench) -> None:
     table, report = bench.presets_table, bench.report
     cartpole, pendulum = table.PRESETS["dqn_cartpole"], table.PRESETS["sac_pendulum"]
