@@ -340,6 +340,9 @@ def fingerprint(cfg: Config | dict[str, Any]) -> dict[str, Any]:
     data = config_to_dict(cfg) if isinstance(cfg, Config) else _with_legacy_env(cfg)
     algo = dict(data.get("algo") or {})
     schema = config_class(algo.get("name"))
+    if schema is not None and not isinstance(cfg, Config):
+        # a field added since the config was stored: the run had its default then
+        algo = {**OmegaConf.to_container(OmegaConf.structured(schema)), **algo}
     for key in (*RUN_KEYS, *(schema.not_fingerprinted if schema else ())):
         algo.pop(key, None)
     data = {k: v for k, v in data.items() if k not in NOT_FINGERPRINTED}

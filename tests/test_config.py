@@ -12,8 +12,8 @@ from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
 
 from rlpipe.algos import ALGORITHMS, DQNConfig
-from rlpipe.cli import register_configs, to_config
-from rlpipe.config import RUN_KEYS, Config, EnvConfig, LoggerConfig
+from rlpipe.cli import compose_run, register_configs, to_config
+from rlpipe.config import RUN_KEYS, Config, EnvConfig, LoggerConfig, config_to_dict, fingerprint
 from rlpipe.errors import RlpipeError
 from rlpipe.pipeline import train
 from rlpipe.runtime import TORCH_THREADS, set_threads
@@ -233,3 +233,22 @@ def test_threads_auto_is_one_on_cpu(threads, device, expected):
         assert torch.get_num_threads() == (expected or TORCH_THREADS)
     finally:
         torch.set_num_threads(before)
+
+
+@pytest.mark.parametrize(
+    "overrides, added",
+    [
+        (["algo=dqn"], ["eps_zeta"]),
+        (["algo=sac"], ["noise_color", "noise_steps", "fixed_alpha"]),
+    ],
+)
+def test_a_checkpoint_s_config_from_before_a_field_existed_is_the_same_run(overrides, added):
+    """A checkpoint stores its config as written then: a field added since stands at its
+    default, so the run resumes; the field set otherwise is another run."""
+    cfg = compose_run(*overrides)
+    stored = config_to_dict(cfg)
+    for name in added:
+        del stored["algo"][name]
+    assert fingerprint(stored) == fingerprint(cfg)
+    changed = compose_run(*overrides, f"algo.{added[0]}=3")
+    assert fingerprint(stored) != fingerprint(changed)
