@@ -30,6 +30,21 @@ BASE = [
 NEWEST = "ckpt_000000000200.pt"
 
 
+def torchrl_stepped(env_cfg: Any) -> Callable[[], Any]:
+    """A factory of ``make_env(env_cfg)`` plus a transform make_env does not add, so that
+    rlpipe's lean collection passes it to TorchRL's ``Collector``."""
+    from torchrl.envs import RewardScaling
+
+    from rlpipe.envs import make_env
+
+    def build() -> Any:
+        env = make_env(env_cfg, seed=0)
+        env.append_transform(RewardScaling(0.0, 2.0))
+        return env
+
+    return build
+
+
 def run_module(
     module: str,
     *args: str,

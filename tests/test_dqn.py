@@ -7,9 +7,9 @@ from functools import partial
 
 import pytest
 import torch
+from conftest import torchrl_stepped
 from tensordict import TensorDict
 from torchrl.data.postprocs import MultiStep
-from torchrl.envs import RewardScaling
 
 from rlpipe.algos import DQN, Algorithm, DQNConfig
 from rlpipe.algos.dqn import HeldActions, epsilon, learning_rate, n_step_transitions
@@ -284,10 +284,5 @@ def test_eps_zeta_holds_the_collecting_policy_s_random_actions():
 
 
 def test_eps_zeta_on_torchrl_s_collector_is_one_line():
-    def scaled_env():  # a transform make_env does not add: TorchRL's Collector runs it
-        env = make_env(EnvConfig(num_envs=2), seed=0)
-        env.append_transform(RewardScaling(0.0, 2.0))
-        return env
-
     with pytest.raises(RlpipeError, match="algo.eps_zeta needs an env made by rlpipe.make_env"):
-        DQN(scaled_env, DQNConfig(**SMALL, eps_zeta=2.0))
+        DQN(torchrl_stepped(EnvConfig(num_envs=2)), DQNConfig(**SMALL, eps_zeta=2.0))

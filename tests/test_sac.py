@@ -7,8 +7,8 @@ from functools import partial
 
 import pytest
 import torch
-from conftest import TINY
-from torchrl.envs import ExplorationType, RewardScaling, set_exploration_type
+from conftest import TINY, torchrl_stepped
+from torchrl.envs import ExplorationType, set_exploration_type
 
 from rlpipe.algos import SAC, Algorithm, SACConfig
 from rlpipe.algos.noise import ColoredNoise, powerlaw_noise
@@ -125,11 +125,7 @@ def test_coloured_noise_colours_the_collecting_draws_only():
 
 
 def test_coloured_noise_on_torchrl_s_collector_is_one_line():
-    def scaled_env():  # a transform make_env does not add: TorchRL's Collector runs it
-        env = make_env(PENDULUM, seed=0)
-        env.append_transform(RewardScaling(0.0, 2.0))
-        return env
-
+    scaled_env = torchrl_stepped(PENDULUM)
     SAC(scaled_env, SACConfig(**SMALL)).close()  # white noise: fine on any env
     with pytest.raises(RlpipeError, match="algo.noise_color needs an env made by rlpipe.make_env"):
         SAC(scaled_env, SACConfig(**SMALL, noise_color=1.0))
