@@ -90,6 +90,7 @@ PRESET_ENVS = {
     "dqn_cartpole": "CartPole-v1",
     "dqn_mountaincar": "MountainCar-v0",
     "dqn_lunarlander": "LunarLander-v3",
+    "dqn_acrobot": "Acrobot-v1",
     "ars_cartpole": "CartPole-v1",
     "ars_pendulum": "Pendulum-v1",
     "ars_bipedal": "BipedalWalker-v3",
