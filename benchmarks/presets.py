@@ -46,7 +46,7 @@ from pathlib import Path
 
 from common import compose_run, load_span, parser, publish_section, section_head
 from presets_figure import profile_figure
-from presets_report import profile_series, seed_text, tables
+from presets_report import machines, profile_series, seed_text, tables
 from presets_runs import PACKAGES, Run, Scheduler, rlpipe_finished, rlpipe_job
 from presets_sb3 import sb3_finished, sb3_job
 from presets_table import PRESETS, Preset, seeds_for
@@ -193,7 +193,10 @@ def section(
     if args.frames is not None or args.final_episodes is not None:
         title += " — smoke test, budgets overridden"
     reused = sum(r.reused for r in runs)
-    starts = sorted(r.load[0] for r in runs if r.load)
+    starts: dict[str, list[float]] = {}  # per machine: its cores set what a load means
+    for r in runs:
+        if r.load:
+            starts.setdefault(r.machine, []).append(r.load[0])
     facts = [
         seeds,
         f"{args.jobs} run(s) at once; {wall / 60:.1f} min in all"
@@ -204,7 +207,11 @@ def section(
         ),
     ]
     if starts:  # the call's own load says nothing of runs read back: theirs, from the records
-        facts.append(f"1-min load average at the runs' starts: {starts[0]:.2f}–{starts[-1]:.2f}")
+        labels = machines(runs)
+        spans = "; ".join(
+            f"{labels[m]} {min(loads):.2f}–{max(loads):.2f}" for m, loads in starts.items()
+        )
+        facts.append(f"1-min load average at the runs' starts: {spans}")
     if missing:  # per preset, each side's seeds: "dqn_cartpole (rlpipe 101, SB3 101)"
         sides: dict[str, dict[str, list[int]]] = {}
         for name, seed, which in missing:

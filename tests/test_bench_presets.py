@@ -6,6 +6,7 @@ from __future__ import annotations
 import importlib
 import importlib.util
 import json
+import re
 import shutil
 import subprocess
 import sys
@@ -198,6 +199,7 @@ def test_a_tiny_run_beside_sb3_and_its_read_back(tmp_path) -> None:
     )
     assert again.returncode == 0, again.stderr
     assert "2 of 2 runs read back" in again.stdout and row in again.stdout
+    assert "1-min load average at the runs' starts: M1 " in again.stdout
     left_out = "left out (`--read-only`): dqn_cartpole (rlpipe 101, SB3 101)"
     assert left_out in again.stdout
     # the records alone (what benchmarks/results/ keeps, without run dirs) give the same row
@@ -209,8 +211,17 @@ def test_a_tiny_run_beside_sb3_and_its_read_back(tmp_path) -> None:
     # a record of the preset as it was before a change stands for nothing: left out, not read
     saved = json.loads((job / "rlpipe.json").read_text())
     assert saved["backend"] in ("envpool", "gymnasium")
-    saved["config"]["algo.lr"] = 1.0
+    first_lr, saved["config"]["algo.lr"] = saved["config"]["algo.lr"], 1.0
     (job / "rlpipe.json").write_text(json.dumps(saved))
     stale = subprocess.run([*command, "--read-only"], capture_output=True, text=True)
     assert stale.returncode == 0, stale.stderr
     assert "left out (`--read-only`): dqn_cartpole (rlpipe 100)" in stale.stdout
+    # runs from two machines: each machine's own load range (a 16-core machine's 10 is not 2's)
+    sb3 = json.loads((job / "sb3.json").read_text())
+    sb3["machine"], sb3["load"] = "a 16-core machine", [12.5, 12.0]
+    (job / "sb3.json").write_text(json.dumps(sb3))
+    saved["config"]["algo.lr"] = first_lr
+    (job / "rlpipe.json").write_text(json.dumps(saved))
+    two = subprocess.run([*command, "--read-only"], capture_output=True, text=True)
+    assert two.returncode == 0, two.stderr
+    assert re.search(r"runs' starts: M1 [\d.]+–[\d.]+; M2 12\.50–12\.50", two.stdout)
