@@ -137,21 +137,24 @@ def _num(value: float | None) -> str:
     return DASH if value is None else f"{value:.1f}"
 
 
+def _seed_cells(run: Run | None, target: float) -> list[str]:
+    """A run's solved mark, frames / seconds to ``target``, last three evals and final eval."""
+    if run is None:
+        return [DASH] * 4
+    if run.error:
+        return [f"failed: {run.error}", DASH, DASH, DASH]
+    mark = "✓" if run.solved(target) else "✗"
+    return [mark, _hit_text(run, target), _num(run.last_three), _num(run.final)]
+
+
 def detail_rows(preset: Preset, ours: Side, theirs: Side, label: dict[str, str]) -> list[list[str]]:
-    """One row per seed: rlpipe's figures and SB3's beside them."""
+    """One row per seed: rlpipe's figures, the minutes its run took, and SB3's figures."""
     by_seed = {r.seed: r for r in theirs.runs}
     rows = []
     for r in ours.runs:
-        cells = [f"`{preset.experiment}`", str(r.seed)]
-        for run in (r, by_seed.get(r.seed)):
-            if run is None:
-                cells += [DASH] * 4
-            elif run.error:
-                cells += [f"failed: {run.error}", DASH, DASH, DASH]
-            else:
-                mark = "✓" if run.solved(preset.target) else "✗"
-                cells += [mark, _hit_text(run, preset.target), _num(run.last_three)]
-                cells.append(_num(run.final))
+        wall = DASH if r.wall is None else f"{r.wall / 60:.1f}"
+        cells = [f"`{preset.experiment}`", str(r.seed), *_seed_cells(r, preset.target), wall]
+        cells += _seed_cells(by_seed.get(r.seed), preset.target)
         rows.append([*cells, label.get(r.machine, DASH)])
     return rows
 
@@ -226,7 +229,7 @@ HEADERS = [
     "machine",
 ]
 DETAIL_HEADERS = ["preset", "seed", "solved", "frames / train s to target", "last three"]
-DETAIL_HEADERS += ["final", "SB3 solved", "SB3 frames / s to target", "SB3 last three"]
+DETAIL_HEADERS += ["final", "wall min", "SB3 solved", "SB3 frames / s to target", "SB3 last three"]
 DETAIL_HEADERS += ["SB3 final", "machine"]
 
 

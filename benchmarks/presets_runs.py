@@ -49,6 +49,7 @@ class Run:
     evals: list[tuple[int, float, float]] = field(default_factory=list)
     final: float | None = None  # the final greedy eval's mean
     seconds: float = 0.0  # wall seconds of the whole job (training, evals, start-up)
+    wall: float | None = None  # rlpipe: the run's own wall seconds (its summary.json)
     error: str | None = None
     reused: bool = False  # read from an earlier call's --out, not run by this one
     machine: str = UNRECORDED  # machine() of the process that ran it
@@ -83,9 +84,13 @@ def record(where: Path, start_load: float, **result: object) -> dict:
 
 
 def recorded(saved: dict) -> dict:
-    """The machine and load fields of a record (absent in earlier versions' records)."""
+    """The machine, load and wall fields of a record (absent in earlier versions' records)."""
     load = saved.get("load")
-    return {"machine": saved.get("machine", UNRECORDED), "load": tuple(load) if load else None}
+    return {
+        "machine": saved.get("machine", UNRECORDED),
+        "load": tuple(load) if load else None,
+        "wall": saved.get("wall"),
+    }
 
 
 def _call(args: list[str], log: Path, cwd: Path) -> None:
@@ -137,11 +142,13 @@ def rlpipe_finished(out: Path, cfg: Config | None = None) -> bool:
 
 
 def read_run(run_dir: Path) -> dict:
-    """A finished run's evals, as ``[frames, mean, training seconds]``, and its final eval."""
+    """A finished run's evals, as ``[frames, mean, training seconds]``, its final eval and its
+    own wall seconds (training and its evals, imports aside: its ``summary.json``)."""
     seconds = dict(read_scalar(run_dir, "time/train_seconds"))
     evals = [[f, m, seconds[f]] for f, m in read_scalar(run_dir, "eval/return_mean")]
     final = json.loads(final_evals(run_dir)[-1].read_text())["return_mean"]
-    return {"evals": evals, "final": final}
+    summary = json.loads((run_dir / "summary.json").read_text())
+    return {"evals": evals, "final": final, "wall": summary["wall_time"]}
 
 
 def rlpipe_job(
@@ -173,8 +180,8 @@ def rlpipe_job(
         shutil.rmtree(run_dir, ignore_errors=True)
     if reused:
         saved = json.loads(meta.read_text()) if meta.is_file() else {}
-        if "evals" not in saved:  # a record from before records held the evals
-            saved.update(read_run(run_dir))
+        if "evals" not in saved or ("wall" not in saved and run_dir.is_dir()):
+            saved.update(read_run(run_dir))  # a record from before records held these
     else:
         start = os.getloadavg()[0]
         _call(["-m", "rlpipe", *overrides], log, out)

@@ -335,6 +335,31 @@ def test_algorithm_checkpoint_holds_normaliser_and_parameters():
     other.close()
 
 
+@pytest.mark.parametrize("budget", ["total_frames", "iterations"])
+def test_step_size_anneals_over_the_budget_and_stays_put_by_default(budget):
+    """α follows algo.step_size_end linearly over the run's frames (or its iterations when
+    no frame budget is set); without step_size_end it is algo.step_size throughout."""
+
+    def alphas(**kw):
+        torch.manual_seed(0)
+        cfg = ARSConfig(num_directions=2, num_best=1, workers=1, step_size=0.04, **kw)
+        algo, seen = ARS(partial(make_env, CARTPOLE), cfg), []
+        for _ in range(3):
+            done = (algo.frames, cfg.total_frames) if cfg.total_frames else (algo.iterations, 4)
+            algo.train_step()
+            seen.append((algo.search.step_size, done))
+        algo.close()
+        return seen
+
+    kw = {"total_frames": 100} if budget == "total_frames" else {"iterations": 4}
+    annealed = alphas(step_size_end=0.0, **kw)
+    assert [a for a, _ in annealed] == pytest.approx(
+        [0.04 * (1 - min(d / t, 1)) for _, (d, t) in annealed]
+    )
+    assert annealed[0][0] == pytest.approx(0.04) and annealed[-1][0] < 0.04
+    assert {a for a, _ in alphas(**kw)} == {0.04}
+
+
 def test_search_restored_mid_way_continues_as_the_uninterrupted_one():
     """θ, the normaliser, the iteration count and the generator travel in the state dict;
     CartPole-v1's reset(seed) fixes each episode, so the env copies' own seed does not matter."""
@@ -392,6 +417,8 @@ def test_config_checks():
         ARSConfig(noise=float("inf"))
     with pytest.raises(RlpipeError, match="algo.step_size must be a finite number > 0, got nan"):
         ARSConfig(step_size=float("nan"))
+    with pytest.raises(RlpipeError, match=r"step_size_end must be null or in \[0, algo.step_"):
+        ARSConfig(step_size=0.02, step_size_end=0.03)
     # the search checks the same parameters, named as its own arguments
     policy, _ = make_ars_policy(make_env(CARTPOLE), ARSConfig())
     factory = partial(make_env, CARTPOLE)

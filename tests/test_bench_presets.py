@@ -193,6 +193,14 @@ def test_a_tiny_run_beside_sb3_and_its_read_back(tmp_path) -> None:
     assert "| CartPole-v1 | 640 |" in row and "| 100 |" in row and row.count("|") == 16
     assert (tmp_path / "profile.png").stat().st_size > 10_000
     assert (tmp_path / "runs" / "dqn_cartpole" / "seed100" / "sb3.json").is_file()
+    # the per-seed row gives the minutes the run took, kept in its record (run dirs are not)
+    job = tmp_path / "runs" / "dqn_cartpole" / "seed100"
+    wall = json.loads((job / "run" / "summary.json").read_text())["wall_time"]
+    assert json.loads((job / "rlpipe.json").read_text())["wall"] == wall
+    per_seed = next(
+        line for line in first.stdout.splitlines() if line.startswith("| `dqn_cartpole` | 100 |")
+    )
+    assert per_seed.split(" | ")[6] == f"{wall / 60:.1f}"
     # the same runs read back, and with --read-only a seed not in --out is left out, not run
     again = subprocess.run(
         [*command, "--read-only", "--seeds", "100", "101"], capture_output=True, text=True
@@ -203,7 +211,6 @@ def test_a_tiny_run_beside_sb3_and_its_read_back(tmp_path) -> None:
     left_out = "left out (`--read-only`): dqn_cartpole (rlpipe 101, SB3 101)"
     assert left_out in again.stdout
     # the records alone (what benchmarks/results/ keeps, without run dirs) give the same row
-    job = tmp_path / "runs" / "dqn_cartpole" / "seed100"
     shutil.rmtree(job / "run")
     records = subprocess.run([*command, "--read-only"], capture_output=True, text=True)
     assert records.returncode == 0, records.stderr

@@ -49,6 +49,14 @@ TRANSITION_KEYS = (
 )
 
 
+def annealed(start: float, end: float | None, frames: int, total: int | None) -> float:
+    """A value annealed linearly from ``start`` to ``end`` over ``total`` frames (held there
+    after); ``start`` throughout where ``end`` or ``total`` is None (e.g. DQN's ``lr_end``)."""
+    if end is None or not total:
+        return start
+    return start + min(frames / total, 1.0) * (end - start)
+
+
 def batch_steps(env: EnvBase, frames: int) -> tuple[int, int]:
     """``(copies, steps)``: the env's copies, and the steps each takes for ``frames`` frames
     (rounded up to whole steps of all copies)."""

@@ -251,6 +251,9 @@ class ARSConfig(AlgoConfig):
     num_directions: int = 16  # N: directions sampled per iteration (2N rollouts)
     num_best: int = 16  # b: directions kept for the update, by max(r+, r-)
     step_size: float = 0.02  # α
+    # null: a constant α; a number: α annealed linearly to it over total_frames (or iterations)
+    # so that the policy settles as the budget ends, rather than being caught mid-jump
+    step_size_end: float | None = None
     noise: float = 0.03  # ν: perturbations are θ ± ν·δ
     # cap on training rollouts (the env's own limit still applies)
     episode_length: int = checked(2000, "at_least_one")
@@ -266,6 +269,10 @@ class ARSConfig(AlgoConfig):
     def __post_init__(self) -> None:
         super().__post_init__()
         check_search_params(self, "algo.")
+        check(
+            self.step_size_end is None or 0 <= self.step_size_end <= self.step_size,
+            f"algo.step_size_end must be null or in [0, algo.step_size], got {self.step_size_end}",
+        )
         if isinstance(self.ray, dict):  # rebuilt from a run's config.yaml
             self.ray = RayConfig(**self.ray)
 

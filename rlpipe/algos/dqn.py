@@ -13,7 +13,7 @@ from torchrl.envs import EnvBase
 from torchrl.modules import EGreedyModule, QValueActor
 from torchrl.objectives import HardUpdate
 
-from rlpipe.algos.base import TRANSITION_KEYS, Metrics, batch_steps
+from rlpipe.algos.base import TRANSITION_KEYS, Metrics, annealed, batch_steps
 from rlpipe.algos.collectors import lean_collection
 from rlpipe.algos.configs import DQNConfig
 from rlpipe.algos.direct import DirectDQNLoss, inner_network
@@ -34,10 +34,7 @@ def epsilon(frames: int, cfg: DQNConfig) -> float:
 def learning_rate(frames: int, cfg: DQNConfig) -> float:
     """The learning rate after ``frames`` env frames (linear to ``lr_end`` over
     ``total_frames``, or constant)."""
-    if cfg.lr_end is None or not cfg.total_frames:
-        return cfg.lr
-    fraction = min(frames / cfg.total_frames, 1.0)
-    return cfg.lr + fraction * (cfg.lr_end - cfg.lr)
+    return annealed(cfg.lr, cfg.lr_end, frames, cfg.total_frames)
 
 
 def n_step_transitions(batch: TensorDictBase, multistep: MultiStep) -> TensorDictBase:

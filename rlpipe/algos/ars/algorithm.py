@@ -15,7 +15,7 @@ from torchrl.data import Bounded, Categorical
 from torchrl.envs import EnvBase
 
 from rlpipe.algos.ars.search import ARSSearch
-from rlpipe.algos.base import Algorithm, Metrics
+from rlpipe.algos.base import Algorithm, Metrics, annealed
 from rlpipe.algos.configs import SEARCH_PARAMS, ARSConfig, RayConfig
 from rlpipe.envs import envpool_env, episode_limit, is_discrete, num_actions, observation_size
 from rlpipe.errors import RlpipeError
@@ -91,6 +91,13 @@ class ARS(Algorithm):
         return self.search.iterations
 
     def train_step(self) -> Metrics:
+        cfg = self.cfg  # α's schedule spans the run's frames, or its iterations if uncapped
+        done, total = (
+            (self.frames, cfg.total_frames)
+            if cfg.total_frames
+            else (self.iterations, cfg.iterations)
+        )
+        self.search.step_size = annealed(cfg.step_size, cfg.step_size_end, done, total)
         stats = self.search.step()
         self.frames += int(stats["env_steps"])  # every step of every perturbed rollout
         return {f"{'time' if key in TIMINGS else 'train'}/{key}": v for key, v in stats.items()}
