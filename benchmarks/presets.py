@@ -194,9 +194,10 @@ def section(
         title += " — smoke test, budgets overridden"
     reused = sum(r.reused for r in runs)
     starts: dict[str, list[float]] = {}  # per machine: its cores set what a load means
+    labels = machines(runs)
     for r in runs:
         if r.load:
-            starts.setdefault(r.machine, []).append(r.load[0])
+            starts.setdefault(labels[r.machine], []).append(r.load[0])
     facts = [
         seeds,
         f"{args.jobs} run(s) at once; {wall / 60:.1f} min in all"
@@ -207,9 +208,8 @@ def section(
         ),
     ]
     if starts:  # the call's own load says nothing of runs read back: theirs, from the records
-        labels = machines(runs)
         spans = "; ".join(
-            f"{labels[m]} {min(loads):.2f}–{max(loads):.2f}" for m, loads in starts.items()
+            f"{tag} {min(loads):.2f}–{max(loads):.2f}" for tag, loads in starts.items()
         )
         facts.append(f"1-min load average at the runs' starts: {spans}")
     if missing:  # per preset, each side's seeds: "dqn_cartpole (rlpipe 101, SB3 101)"

@@ -189,9 +189,30 @@ def aggregate(of: list[Side]) -> str:
     )
 
 
+def undated(machine: str) -> str:
+    """A record's machine line without the day it ran (``common.machine`` starts with it)."""
+    day, _, rest = machine.partition(" · ")
+    return rest if day[:4].isdigit() and rest else machine
+
+
 def machines(runs: list[Run]) -> dict[str, str]:
-    """A short label (M1, M2, ...) for each machine the runs ran on."""
-    return {m: f"M{i}" for i, m in enumerate(dict.fromkeys(r.machine for r in runs), 1)}
+    """A short label (M1, M2, ...) for each record's machine line: one per machine, whatever
+    the days its runs ran on."""
+    tags = {m: f"M{i}" for i, m in enumerate(dict.fromkeys(undated(r.machine) for r in runs), 1)}
+    return {r.machine: tags[undated(r.machine)] for r in runs}
+
+
+def legend(runs: list[Run]) -> list[str]:
+    """One line per machine label: the machine and the days its runs ran on."""
+    days: dict[str, list[str]] = {}
+    for m in dict.fromkeys(r.machine for r in runs):
+        days.setdefault(undated(m), []).append(m.partition(" · ")[0] if undated(m) != m else "")
+    label = machines(runs)
+    tags = {undated(m): tag for m, tag in label.items()}
+    return [
+        f"- {tags[m]}: {m}" + (f" (runs of {', '.join(sorted(d))})" if any(d) else "")
+        for m, d in days.items()
+    ]
 
 
 def note(p: Preset, cfg: Config) -> str:
@@ -252,9 +273,9 @@ def tables(presets: list[Preset], configs: dict[str, Config], runs: list[Run]) -
         + "."
     )
     notes = [note(p, configs[p.experiment]) for p in presets]
-    legend = [f"- {tag}: {m}" for m, tag in label.items()]
+    lines = legend(runs)
     return [table(HEADERS, rows), "", summary, "", *notes, "", table(DETAIL_HEADERS, details)] + [
         "",
         "Machines:",
-        *legend,
+        *lines,
     ]

@@ -456,6 +456,8 @@ BAD = [
     ),
     (["algo.noise=0"], "algo.noise must be a finite number > 0"),
     (["algo.step_size=-1"], "algo.step_size must be a finite number > 0"),
+    # the preset anneals α to 0.01: a smaller α alone says how to keep it
+    (["algo.step_size=0.005"], "algo.step_size_end must be null or in [0, algo.step_size (0.005)]"),
 ]
 
 

@@ -76,6 +76,18 @@ def test_solved_needs_the_last_three_evals_and_the_final_eval(bench) -> None:
     assert not run(bench, 100, [500, 500, 500], None).solved(500)  # no final eval
 
 
+def test_a_machine_is_one_label_whatever_the_days_its_runs_ran_on(bench) -> None:
+    runs = [run(bench, 100 + i, [1.0], 1.0) for i in range(3)]
+    days = ["2026-11-26 · box, 2 cores", "2026-11-27 · box, 2 cores", "2026-11-26 · big, 16 cores"]
+    for r, m in zip(runs, days):
+        r.machine = m
+    assert list(bench.report.machines(runs).values()) == ["M1", "M1", "M2"]
+    assert bench.report.legend(runs) == [
+        "- M1: box, 2 cores (runs of 2026-11-26, 2026-11-27)",
+        "- M2: big, 16 cores (runs of 2026-11-26)",
+    ]
+
+
 def test_the_row_of_a_preset(bench) -> None:
     preset = bench.presets_table.PRESETS["dqn_cartpole"]
     report = bench.report

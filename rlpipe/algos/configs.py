@@ -271,7 +271,8 @@ class ARSConfig(AlgoConfig):
         check_search_params(self, "algo.")
         check(
             self.step_size_end is None or 0 <= self.step_size_end <= self.step_size,
-            f"algo.step_size_end must be null or in [0, algo.step_size], got {self.step_size_end}",
+            f"algo.step_size_end must be null or in [0, algo.step_size ({self.step_size})], got "
+            f"{self.step_size_end}: lower it, or set algo.step_size_end=null for a constant α",
         )
         if isinstance(self.ray, dict):  # rebuilt from a run's config.yaml
             self.ray = RayConfig(**self.ray)
