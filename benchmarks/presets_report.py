@@ -189,29 +189,30 @@ def aggregate(of: list[Side]) -> str:
     )
 
 
-def undated(machine: str) -> str:
-    """A record's machine line without the day it ran (``common.machine`` starts with it)."""
+def split_day(machine: str) -> tuple[str, str]:
+    """A record's machine line as (the day it ran, the rest); ``common.machine`` starts with the
+    day, which earlier records may lack (day "")."""
     day, _, rest = machine.partition(" · ")
-    return rest if day[:4].isdigit() and rest else machine
+    return (day, rest) if day[:4].isdigit() and rest else ("", machine)
 
 
 def machines(runs: list[Run]) -> dict[str, str]:
     """A short label (M1, M2, ...) for each record's machine line: one per machine, whatever
     the days its runs ran on."""
-    tags = {m: f"M{i}" for i, m in enumerate(dict.fromkeys(undated(r.machine) for r in runs), 1)}
-    return {r.machine: tags[undated(r.machine)] for r in runs}
+    lines = dict.fromkeys(r.machine for r in runs)
+    tags = {m: f"M{i}" for i, m in enumerate(dict.fromkeys(split_day(m)[1] for m in lines), 1)}
+    return {m: tags[split_day(m)[1]] for m in lines}
 
 
 def legend(runs: list[Run]) -> list[str]:
     """One line per machine label: the machine and the days its runs ran on."""
-    days: dict[str, list[str]] = {}
-    for m in dict.fromkeys(r.machine for r in runs):
-        days.setdefault(undated(m), []).append(m.partition(" · ")[0] if undated(m) != m else "")
-    label = machines(runs)
-    tags = {undated(m): tag for m, tag in label.items()}
+    days: dict[tuple[str, str], list[str]] = {}
+    for m, tag in machines(runs).items():
+        day, rest = split_day(m)
+        days.setdefault((tag, rest), []).extend([day] if day else [])
     return [
-        f"- {tags[m]}: {m}" + (f" (runs of {', '.join(sorted(d))})" if any(d) else "")
-        for m, d in days.items()
+        f"- {tag}: {rest}" + (f" (runs of {', '.join(sorted(d))})" if d else "")
+        for (tag, rest), d in days.items()
     ]
 
 
