@@ -1,5 +1,5 @@
 """A run's budget: ``total_frames``, the algorithm's own (epochs, iterations), when it is spent,
-and whether any evaluation falls inside it."""
+whether it ended before ``total_frames``, and whether any evaluation falls inside it."""
 
 from __future__ import annotations
 
@@ -20,6 +20,18 @@ def spent(algo: Algorithm, total_frames: int | None) -> bool:
     """Whether the frame budget or the algorithm's own budget is spent."""
     return (total_frames is not None and algo.frames >= total_frames) or (
         algo.budget is not None and algo.iterations >= algo.budget
+    )
+
+
+def ended_short(algo: Algorithm, total_frames: int | None) -> str | None:
+    """The note for a run whose own budget (epochs, iterations) ended it before
+    ``total_frames``, or None."""
+    if total_frames is None or algo.frames >= total_frames or not spent(algo, None):
+        return None
+    key = algo.budget_key or "the algorithm's budget"
+    return (
+        f"the run ended at {key}={algo.budget:,} after {algo.frames:,} of total_frames="
+        f"{total_frames:,} frames: raise {key} to train to total_frames"
     )
 
 

@@ -20,7 +20,7 @@ from hydra.plugins.search_path_plugin import SearchPathPlugin
 from omegaconf import MISSING, DictConfig, OmegaConf, open_dict
 from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
 
-from rlpipe.config import Config, EnvConfig
+from rlpipe.config import AlgoConfig, Config, EnvConfig
 from rlpipe.console import say
 from rlpipe.errors import RlpipeError, check
 from rlpipe.outcomes import Interrupted
@@ -157,13 +157,19 @@ EXPLORATION_TRAPS = {
         "algo=sac env=mountaincar_continuous, tuned with pink noise)"
     ),
 }
+# the algorithm settings that escape those traps where they are not zero (exploration noise
+# correlated in time): a run that sets one is not on its defaults' exploration
+TRAP_ESCAPES = {"sac": "noise_color"}
 
 
-def trap_notice(algo: str, env_id: str) -> str | None:
+def trap_notice(algo: AlgoConfig, env_id: str) -> str | None:
     """The line a run without tuned settings starts with where ``algo``'s defaults are known to
-    fail on ``env_id`` (:data:`EXPLORATION_TRAPS`); None elsewhere."""
+    fail on ``env_id`` (:data:`EXPLORATION_TRAPS`) and it does not set what escapes the trap
+    (:data:`TRAP_ESCAPES`); None elsewhere."""
     why = EXPLORATION_TRAPS.get(env_id.split(":")[-1])
-    return None if why is None else f"rlpipe: note: {algo}'s defaults on {env_id}: {why}"
+    if why is None or getattr(algo, TRAP_ESCAPES.get(algo.name, ""), 0):
+        return None
+    return f"rlpipe: note: {algo.name}'s defaults on {env_id}: {why}"
 
 
 def tuned_notice(choices: DictConfig) -> str | None:

@@ -192,9 +192,7 @@ def task(cfg: DictConfig) -> float | None:
     def job() -> RunResult:
         check_choices(hydra_cfg.runtime.choices)
         config = to_config(cfg)  # checked before torch loads (with the pipeline, below)
-        notice = tuned_notice(hydra_cfg.runtime.choices) or trap_notice(
-            config.algo.name, config.env.id
-        )
+        notice = tuned_notice(hydra_cfg.runtime.choices) or trap_notice(config.algo, config.env.id)
         if notice:
             say(notice)
         from rlpipe.pipeline import train

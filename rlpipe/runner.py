@@ -17,7 +17,7 @@ from torchrl.record.loggers import Logger
 
 from rlpipe import faults
 from rlpipe.algos.base import EPISODE_FRAMES, EPISODE_RETURN, Algorithm, Metrics
-from rlpipe.budget import check_budget, no_evaluation_inside, spent
+from rlpipe.budget import check_budget, ended_short, no_evaluation_inside, spent
 from rlpipe.cadence import Cadence, Window
 from rlpipe.config import Config, config_to_dict
 from rlpipe.console import say
@@ -207,6 +207,9 @@ class Runner:
                 if due:
                     self.save()
                     self.algo.restart_episodes()  # as a run resumed from this checkpoint does
+            short = ended_short(self.algo, self.total_frames)
+            if short is not None:
+                say(f"rlpipe: warning: {short}", err=True)
             self._evaluate()
             bar.show(self._last_return, self.last_eval)  # the bar ends on the final evaluation
             if signals.received is not None:

@@ -130,6 +130,14 @@ def finished_run(tmp_path_factory) -> Path:
     return run_dir
 
 
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    """The fault-injection suite's uninterrupted run per algorithm (tests/fault_harness.py)."""
+    from fault_harness import reference_runs  # imports this module: not at the top
+
+    return reference_runs(tmp_path_factory)
+
+
 @pytest.fixture
 def run_copy(tmp_path, finished_run) -> Path:
     """A copy of the finished run of its own, ``tmp_path/run``."""

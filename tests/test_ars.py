@@ -1,38 +1,26 @@
-"""ARS: the update rule, the normaliser, population calls, the search, the algorithm, the CLI."""
+"""ARS: the update rule, the normaliser, population calls, the algorithm and its config, the CLI."""
 
 from __future__ import annotations
 
 import io
-import math
-import multiprocessing
-import os
-import pickle
 import re
-import signal
-import sys
-import threading
-import time
 from dataclasses import fields
 from functools import partial
-from types import SimpleNamespace
 
-import gymnasium as gym
 import numpy as np
 import pytest
 import torch
 from conftest import TINY
 from tensordict import TensorDict
-from tensordict.nn import TensorDictModule, TensorDictSequential
+from tensordict.nn import TensorDictModule
 from test_config import compose_config
 from torch import nn
 from torch.nn.utils import parameters_to_vector, vector_to_parameters
 
 from rlpipe.algos import ARS, Algorithm, ARSConfig
-from rlpipe.algos.ars import ARSSearch, PopulationPolicy, ars_update, backends, make_ars_policy
-from rlpipe.algos.ars.rollout import rollout
+from rlpipe.algos.ars import ARSSearch, PopulationPolicy, ars_update, make_ars_policy
 from rlpipe.config import EnvConfig
 from rlpipe.envs import make_env
-from rlpipe.episodes import evaluate
 from rlpipe.errors import RlpipeError
 from rlpipe.models import ClampAction
 from rlpipe.normalizer import Normalizer
@@ -163,125 +151,6 @@ def test_workers_take_fewer_chunks_of_a_policy_that_costs_more_per_call():
     assert fine > coarse == 1 and fine <= MAX_CHUNKS
 
 
-def test_search_standalone_solves_cartpole_and_tracks_observations():
-    torch.manual_seed(0)
-    policy, normalizer = make_ars_policy(make_env(CARTPOLE), ARSConfig())
-    search = ARSSearch(
-        policy,
-        partial(make_env, CARTPOLE),
-        num_directions=8,
-        num_best=4,
-        step_size=0.02,
-        noise=0.03,
-        max_steps=500,
-        normalizer=normalizer,
-        seed=0,
-    )
-    steps = 0
-    for _ in range(25):
-        stats = search.step()
-        steps += int(stats["env_steps"])
-        if stats["return_mean"] == 500:
-            break
-    search.close()
-    assert stats["return_max"] == 500
-    assert normalizer.count == steps  # every state a perturbed policy acted on
-    assert evaluate(policy, make_env(CARTPOLE, num_envs=2), 2).mean > 400
-
-
-def small_search(seed: int, **kwargs) -> ARSSearch:
-    policy, normalizer = make_ars_policy(make_env(CARTPOLE), ARSConfig())
-    return ARSSearch(
-        policy,
-        partial(make_env, CARTPOLE),
-        num_directions=3,
-        normalizer=normalizer,
-        seed=seed,
-        **kwargs,
-    )
-
-
-@pytest.mark.parametrize(
-    ("short", "here"),
-    [(0.0, False), (math.inf, True)],
-    ids=["workers-every-iteration", "this-process-timed-too"],
-)
-def test_worker_processes_give_the_same_search_as_one_process(monkeypatch, short, here):
-    """Each member's episode seed comes from the search, whichever process rolls it out: the
-    workers, or this process (timed against the workers when iterations are short)."""
-    monkeypatch.setattr(backends, "SHORT_SECONDS", short)
-    thetas, counts = [], []
-    for workers in (1, 2):
-        search = small_search(seed=5, workers=workers)
-        try:
-            before = search.theta
-            # several iterations: a worker gets the policy state with its first chunk of each
-            steps = [search.step()["env_steps"] for _ in range(3)]
-            if workers == 2:  # the first iteration in the workers, the second as the case says
-                assert ("here" in search._backend._timed) is here
-        finally:
-            search.close()
-        assert not torch.equal(before, search.theta)
-        assert search.normalizer.count == sum(steps) > 18
-        thetas.append(search.theta)
-        counts.append(steps)
-    assert torch.allclose(thetas[0], thetas[1]) and counts[0] == counts[1]
-
-
-def test_workers_or_this_process_by_seconds_per_env_step():
-    """The faster way per env step rolls out; the slower is timed again once the work has
-    changed RETIME_FACTOR-fold; long iterations always go to the workers."""
-    short = backends.SHORT_SECONDS
-
-    def way(steps: int, **timed: tuple[float, int]) -> str:
-        pool = SimpleNamespace(_timed=timed, _steps=steps)
-        return backends._Processes._way(pool)
-
-    assert way(0) == "pool"  # nothing timed yet
-    assert way(100, pool=(short / 2, 100)) == "here"  # short: this process is timed too
-    assert way(100, pool=(short * 2, 100)) == "pool"
-    # this process is faster per step, though its iteration (more steps) took longer
-    fast_here = {"pool": (short / 5, 100), "here": (short / 4, 150)}
-    assert way(150, **fast_here) == "here"
-    assert way(int(100 * backends.RETIME_FACTOR) - 1, **fast_here) == "here"
-    assert way(int(100 * backends.RETIME_FACTOR), **fast_here) == "pool"  # the work has doubled
-    assert way(2_000, **fast_here) == "pool"  # 2,000 steps here would take over SHORT_SECONDS
-    fast_pool = {"pool": (short / 4, 200), "here": (short / 3, 200)}
-    assert way(200, **fast_pool) == "pool"
-    assert way(90, **fast_pool) == "here"  # the work has halved since this process was timed
-
-
-def test_rollout_ends_episodes_at_the_env_time_limit_inside_its_wrappers():
-    """The rollout steps the env under TimeLimit & co. and applies the limit itself; an env with
-    any other wrapper is stepped through it, with the same results."""
-    policy, _ = make_ars_policy(make_env(PENDULUM), ARSConfig())
-    flat = torch.randn(3, parameters_to_vector(policy.parameters()).numel())
-    plain = [gym.make(PENDULUM.id) for _ in range(3)]
-    result = rollout(policy, plain, flat, [0, 1, 2], max_steps=1000)
-    assert result.lengths.tolist() == [200, 200, 200]  # Pendulum-v1's own limit
-    capped = rollout(policy, plain, flat, [0, 1, 2], max_steps=30)
-    assert capped.lengths.tolist() == [30, 30, 30]
-    wrapped = [gym.wrappers.TransformReward(gym.make(PENDULUM.id), float) for _ in range(3)]
-    same = rollout(policy, wrapped, flat, [0, 1, 2], max_steps=1000)
-    assert torch.equal(same.lengths, result.lengths)
-    assert torch.equal(same.raw_returns, result.raw_returns)
-    assert torch.equal(same.obs_mean, result.obs_mean)
-
-
-def test_training_rewards_are_the_envs_own_unless_clipped():
-    """reward_clip=false ranks the env's returns; clipped at 1, Pendulum's rewards (down to -16.3
-    a step) are -1 wherever the pole is more than a radian from the top, which flattens away
-    the differences the swing-up needs: the Pendulum preset turns it off."""
-    policy, _ = make_ars_policy(make_env(PENDULUM), ARSConfig(policy="mlp", hidden_sizes=[8]))
-    flat = torch.randn(4, parameters_to_vector(policy.parameters()).numel())
-    envs = [gym.make(PENDULUM.id) for _ in range(4)]
-    own = rollout(policy, envs, flat, [0, 1, 2, 3], max_steps=1000)
-    assert torch.equal(own.returns, own.raw_returns)
-    clipped = rollout(policy, envs, flat, [0, 1, 2, 3], max_steps=1000, reward_clip=1.0)
-    assert torch.equal(clipped.raw_returns, own.raw_returns)
-    assert (clipped.returns >= -200).all() and (own.raw_returns < -200).all()
-
-
 def test_pendulum_preset_is_a_biased_mlp_run_for_its_whole_frame_budget():
     cfg = compose_config("+experiment=ars_pendulum")
     assert isinstance(cfg.algo, ARSConfig) and cfg.env.id == PENDULUM.id
@@ -295,18 +164,6 @@ def test_pendulum_preset_is_a_biased_mlp_run_for_its_whole_frame_budget():
     assert cfg.algo.normalize_observations and policy[0].module is normalizer
     # algo.iterations must not end the run before total_frames (Pendulum: 200-step episodes)
     assert cfg.algo.iterations * 2 * cfg.algo.num_directions * 200 >= cfg.total_frames
-
-
-def test_rollout_result_travels_as_numpy_arrays():
-    policy, _ = make_ars_policy(make_env(CARTPOLE), ARSConfig())
-    flat = torch.randn(2, parameters_to_vector(policy.parameters()).numel())
-    result = rollout(policy, [gym.make(CARTPOLE.id) for _ in range(2)], flat, [3, 4], max_steps=50)
-    data = pickle.dumps(result)
-    assert b"torch" not in data  # not torch's reducer, which ships tensors via shared memory
-    back = pickle.loads(data)
-    for field in fields(result):
-        before, after = getattr(result, field.name), getattr(back, field.name)
-        assert torch.equal(before, after) if isinstance(before, torch.Tensor) else before == after
 
 
 def test_algorithm_checkpoint_holds_normaliser_and_parameters():
@@ -360,52 +217,6 @@ def test_step_size_anneals_over_the_budget_and_stays_put_by_default(budget):
     assert {a for a, _ in alphas(**kw)} == {0.04}
 
 
-def test_search_restored_mid_way_continues_as_the_uninterrupted_one():
-    """θ, the normaliser, the iteration count and the generator travel in the state dict;
-    CartPole-v1's reset(seed) fixes each episode, so the env copies' own seed does not matter."""
-    straight = small_search(seed=5, workers=1)
-    interrupted = small_search(seed=5, workers=1)
-    try:
-        for _ in range(2):
-            straight.step()
-            interrupted.step()
-        buffer = io.BytesIO()
-        torch.save(interrupted.state_dict(), buffer)
-    finally:
-        interrupted.close()
-    buffer.seek(0)
-    resumed = small_search(seed=123, workers=1)  # another generator, a fresh normaliser
-    try:
-        resumed.load_state_dict(torch.load(buffer, weights_only=True))
-        assert resumed.iterations == 2
-        for _ in range(2):
-            expected, got = straight.step(), resumed.step()
-            assert got["episode_return"] == expected["episode_return"]
-    finally:
-        straight.close()
-        resumed.close()
-    assert not torch.equal(resumed.theta, torch.zeros_like(resumed.theta))
-    assert torch.equal(resumed.theta, straight.theta)
-    assert torch.equal(resumed.normalizer.mean, straight.normalizer.mean)
-
-
-def test_building_ars_starts_no_workers_until_it_trains():
-    """``load_run`` builds a run's algorithm only to hold its policy: that spawns nothing."""
-    before = set(multiprocessing.active_children())
-    algo = ARS(partial(make_env, CARTPOLE), ARSConfig(workers=2))
-    assert set(multiprocessing.active_children()) == before
-    algo.close()  # nothing started, nothing to stop
-    assert set(multiprocessing.active_children()) == before
-    algo = ARS(partial(make_env, CARTPOLE), ARSConfig(workers=2))
-    try:
-        metrics = algo.train_step()
-        assert len(set(multiprocessing.active_children()) - before) == 2
-    finally:
-        algo.close()
-    assert metrics["train/env_steps"] == algo.frames > 0 and algo.iterations == 1
-    assert set(multiprocessing.active_children()) == before
-
-
 def test_config_checks():
     with pytest.raises(RlpipeError, match="num_best"):
         ARSConfig(num_directions=4, num_best=5)
@@ -419,6 +230,11 @@ def test_config_checks():
         ARSConfig(step_size=float("nan"))
     with pytest.raises(RlpipeError, match=r"step_size_end must be null or in \[0, algo.step_"):
         ARSConfig(step_size=0.02, step_size_end=0.03)
+    with pytest.raises(RlpipeError, match="algo.reward_clip must be true, false or a number > 0"):
+        ARSConfig(reward_clip=float("inf"))
+    # true: the notebook's [-1, 1]; a number: that bound; false: no clip
+    bounds = [ARSConfig(reward_clip=v).reward_bound for v in (True, 10, 2.5, False)]
+    assert bounds == [1.0, 10.0, 2.5, None]
     # the search checks the same parameters, named as its own arguments
     policy, _ = make_ars_policy(make_env(CARTPOLE), ARSConfig())
     factory = partial(make_env, CARTPOLE)
@@ -449,6 +265,22 @@ def test_cli_trains_ars(rlpipe_cli):
     assert "final eval" in proc.stdout
 
 
+def test_cli_says_when_iterations_end_the_run_before_total_frames(rlpipe_cli, tmp_path):
+    base = ["~tuned", "progress=false", "eval_every=0", "eval_episodes=2", "algo=ars"]
+    small = ["algo.num_directions=2", "algo.num_best=2", "algo.workers=1"]
+    proc = rlpipe_cli(*base, *small, "total_frames=100000", "algo.iterations=2")
+    assert proc.returncode == 0, proc.stderr
+    assert re.search(
+        r"rlpipe: warning: the run ended at algo.iterations=2 after [\d,]+ of "
+        r"total_frames=100,000 frames: raise algo.iterations to train to total_frames",
+        proc.stderr,
+    ), proc.stderr
+    ends_on_frames = rlpipe_cli(
+        *base, *small, "total_frames=100", "algo.iterations=1000", run_dir=tmp_path / "frames"
+    )
+    assert ends_on_frames.returncode == 0 and "raise algo" not in ends_on_frames.stderr
+
+
 BAD = [
     (
         ["algo.num_directions=16", "algo.num_best=17"],
@@ -456,6 +288,7 @@ BAD = [
     ),
     (["algo.noise=0"], "algo.noise must be a finite number > 0"),
     (["algo.step_size=-1"], "algo.step_size must be a finite number > 0"),
+    (["algo.reward_clip=-1"], "algo.reward_clip must be true, false or a number > 0, got -1"),
     # the preset anneals α to 0.01: a smaller α alone says how to keep it
     (["algo.step_size=0.005"], "algo.step_size_end must be null or in [0, algo.step_size (0.005)]"),
 ]
@@ -467,173 +300,3 @@ def test_cli_bad_input_is_one_line(rlpipe_cli, args, message):
     assert proc.returncode == 2
     lines = [line for line in proc.stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and lines[0].startswith(f"rlpipe: error: {message}"), proc.stderr
-
-
-def _train_until_killed(conn, variant: str) -> None:
-    """The main process of a run, forked from the test process (which has imported everything):
-    ARS with two workers, whose pids it sends once they are up, trains until killed."""
-    if variant == "spawn":
-        backends._start_method = lambda: "spawn"
-    elif variant == "fork-pipes-only":  # no PR_SET_PDEATHSIG: only EOF on the pipes
-        backends._die_with_parent = lambda parent_pid: True
-    elif variant == "fork-prctl-only":  # workers keep the inherited pipe ends: only the kernel
-        backends._PARENT_ENDS = _Forgetful()
-    cfg = ARSConfig(num_directions=4, num_best=4, episode_length=200, workers=2)
-    algo = ARS(partial(make_env, PENDULUM, seed=0), cfg)
-    algo.search.start()
-    conn.send([proc.pid for proc in multiprocessing.active_children()])
-    while True:
-        algo.train_step()
-
-
-class _Forgetful(set):
-    """A set that keeps nothing."""
-
-    def add(self, item: object) -> None:
-        pass
-
-
-def _start_time(pid: int) -> str | None:
-    """``pid``'s start time (with the pid, a process's identity); None once it is gone (a
-    zombie counts as gone: it holds no memory, and init reaps it)."""
-    try:
-        with open(f"/proc/{pid}/stat") as file:
-            stat = file.read().rpartition(")")[2].split()
-    except OSError:
-        return None
-    return None if stat[0] in ("Z", "X") else stat[19]
-
-
-@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="forks, reads /proc")
-@pytest.mark.parametrize(
-    # spawned workers import torch & co. afresh: slow, in the fault-injection suite
-    "variant",
-    [
-        "fork",
-        "fork-pipes-only",
-        "fork-prctl-only",
-        pytest.param("spawn", marks=pytest.mark.faults),
-    ],
-)
-def test_workers_exit_when_the_main_process_is_killed(variant):
-    """SIGKILL of the main process leaves no worker behind: each worker sees EOF on its pipe
-    (it holds no other end of any pipe) and the kernel kills it with its parent (prctl)."""
-    ctx = multiprocessing.get_context("fork")
-    receive, send = ctx.Pipe(duplex=False)
-    main = ctx.Process(target=_train_until_killed, args=(send, variant))
-    main.start()
-    send.close()
-    try:
-        assert receive.poll(120), "the workers did not start"
-        workers = {pid: _start_time(pid) for pid in receive.recv()}
-        assert len(workers) == 2 and None not in workers.values()
-        time.sleep(0.5)  # mid-iteration
-    finally:
-        main.kill()
-        main.join()
-    deadline = time.monotonic() + 5
-    while True:
-        left = [pid for pid, start in workers.items() if _start_time(pid) == start]
-        if not left or time.monotonic() > deadline:
-            break
-        time.sleep(0.05)
-    for pid in left:  # the same processes (pid and start time): do not leave them behind
-        os.kill(pid, signal.SIGKILL)
-    assert not left, f"workers {left} outlived the killed main process"
-
-
-def test_a_killed_worker_stops_training_with_one_line(monkeypatch):
-    """A worker killed mid-training (OOM killer, kill -9) raises one RlpipeError line in the
-    main process within seconds; close() then neither raises nor hangs."""
-    monkeypatch.setattr(backends, "SHORT_SECONDS", 0.0)  # every iteration in the workers
-    before = set(multiprocessing.active_children())
-    cfg = ARSConfig(num_directions=4, num_best=4, episode_length=200, workers=2)
-    algo = ARS(partial(make_env, PENDULUM, seed=0), cfg)
-    try:
-        algo.train_step()
-        workers = list(set(multiprocessing.active_children()) - before)
-        assert len(workers) == 2
-        victim, killed_at = workers[0], []
-
-        def kill() -> None:
-            killed_at.append(time.monotonic())
-            os.kill(victim.pid, signal.SIGKILL)
-
-        timer = threading.Timer(0.3, kill)
-        timer.start()
-        with pytest.raises(RlpipeError) as error:
-            while not killed_at or time.monotonic() < killed_at[0] + 10:
-                algo.train_step()
-        raised_at = time.monotonic()
-        timer.join()
-        assert raised_at - killed_at[0] < 5
-        message = str(error.value)
-        assert f"ARS rollout worker (pid {victim.pid}) died: killed by SIGKILL" in message
-        assert "resume=" in message and "\n" not in message
-        with pytest.raises(RlpipeError, match="worker"):  # the pool is not used again
-            algo.train_step()
-    finally:
-        start = time.monotonic()
-        algo.close()
-        assert time.monotonic() - start < 5
-    assert set(multiprocessing.active_children()) == before  # the other worker is stopped too
-
-
-def _documented_search(seed: int = 7) -> ARSSearch:
-    """An ARSSearch as docs/api.md builds one: a fresh MLP on Pendulum-v1, its ``Normalizer``
-    both inside the policy and passed as ``normalizer=``."""
-    normalizer = Normalizer(3)
-    net = nn.Sequential(nn.Linear(3, 8), nn.Tanh(), nn.Linear(8, 1))
-    policy = TensorDictSequential(
-        TensorDictModule(normalizer, in_keys=["observation"], out_keys=["observation_norm"]),
-        TensorDictModule(net, in_keys=["observation_norm"], out_keys=["action"]),
-    )
-    return ARSSearch(
-        policy,
-        partial(make_env, PENDULUM, vectorization="sync"),
-        num_directions=3,
-        num_best=2,
-        max_steps=20,
-        normalizer=normalizer,
-        workers=1,
-        seed=seed,
-    )
-
-
-def test_search_state_dict_saved_to_a_file_resumes_exactly(tmp_path):
-    """Saved after 2 iterations and loaded into a fresh search (fresh weights, fresh normaliser),
-    the next 2 iterations are those the saved search ran: same returns, same θ, same statistics.
-    Pendulum-v1's reset(seed) fixes each episode, so the env copies' history does not matter."""
-    torch.manual_seed(0)
-    search = _documented_search()
-    try:
-        for _ in range(2):
-            search.step()
-        torch.save(search.state_dict(), tmp_path / "search.pt")
-        kept = search.state_dict()  # in memory: a copy too, which the next steps leave alone
-        saved_theta = search.theta
-        expected = [search.step() for _ in range(2)]
-    finally:
-        search.close()
-    saved = torch.load(tmp_path / "search.pt", weights_only=True)
-    assert kept["iterations"] == saved["iterations"] == 2
-    assert torch.equal(kept["generator"], saved["generator"])
-    for key, value in saved["policy"].items():
-        assert torch.equal(kept["policy"][key], value), key
-    torch.manual_seed(1)  # other initial weights: the state must bring θ back
-    resumed = _documented_search()
-    assert not torch.equal(resumed.theta, saved_theta)
-    try:
-        resumed.load_state_dict(torch.load(tmp_path / "search.pt", weights_only=True))
-        assert resumed.iterations == 2 and torch.equal(resumed.theta, saved_theta)
-        got = [resumed.step() for _ in range(2)]
-    finally:
-        resumed.close()
-    for before, after in zip(expected, got):
-        assert after["episode_return"] == before["episode_return"]
-        assert after["episode_length"] == before["episode_length"] == [20.0] * 6
-        assert after["return_mean"] == before["return_mean"]
-    assert torch.equal(resumed.theta, search.theta)
-    for key in ("count", "mean", "m2", "loc", "scale"):
-        assert torch.equal(getattr(resumed.normalizer, key), getattr(search.normalizer, key)), key
-    assert resumed.normalizer.count == 4 * 6 * 20  # every observation of the 4 iterations

@@ -9,6 +9,7 @@ import sys
 import pytest
 from conftest import TINY
 
+from rlpipe.algos import PPOConfig, SACConfig
 from rlpipe.cli import trap_notice
 
 
@@ -221,5 +222,11 @@ def test_a_known_exploration_trap_is_named_at_start(rlpipe_cli):
     first = first_line(rlpipe_cli, "algo=ars", "env=gym", "env.id=MountainCarContinuous-v0")
     assert first.startswith("rlpipe: note: ars's defaults on MountainCarContinuous-v0: a known ")
     assert "exploration trap" in first and "algo=sac env=mountaincar_continuous" in first
-    assert trap_notice("sac", "MountainCarContinuous-v0").startswith("rlpipe: note: sac's ")
-    assert trap_notice("sac", "Pendulum-v1") is None
+    assert trap_notice(SACConfig(), "MountainCarContinuous-v0").startswith("rlpipe: note: sac's")
+    assert trap_notice(SACConfig(), "Pendulum-v1") is None
+    # time-correlated noise is SAC's way out (the tuned preset's): no note for a run that sets it
+    assert (
+        trap_notice(SACConfig(noise_color=1.0, noise_steps=1000), "MountainCarContinuous-v0")
+        is None
+    )
+    assert trap_notice(PPOConfig(), "MountainCarContinuous-v0") is not None

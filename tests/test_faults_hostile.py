@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 from conftest import BASE, NEWEST
-from test_faults import (
+from fault_harness import (
     Reference,
     assert_run_intact,
     error_line,

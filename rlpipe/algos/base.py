@@ -87,6 +87,7 @@ class Algorithm:
     # the algorithm's own budget in iterations (REINFORCE epochs, ARS iterations); None: the
     # run's total_frames decides
     budget: int | None = None
+    budget_key: ClassVar[str] = ""  # the config key that sets budget (``algo.iterations``)
     # the most frames that budget can take (None: not known); a run warns when its first
     # evaluation lies past it
     budget_frames: int | None = None

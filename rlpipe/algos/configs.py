@@ -257,7 +257,9 @@ class ARSConfig(AlgoConfig):
     noise: float = 0.03  # ν: perturbations are θ ± ν·δ
     # cap on training rollouts (the env's own limit still applies)
     episode_length: int = checked(2000, "at_least_one")
-    reward_clip: bool = True  # clip training rewards to [-1, 1], as the notebook
+    # training rewards clipped to [-1, 1] (true: the notebook's), to [-c, c] (a number c: a
+    # fall's -100 counts as -c) or not at all (false)
+    reward_clip: bool | int | float = True
     alive_bonus_offset: float = 0.0  # added to every training reward (RL Zoo: -0.1 for Bipedal)
     normalize_observations: bool = True  # ARS V2: running mean/variance, frozen for evaluation
     policy: str = checked("linear", choices=ARS_POLICIES)
@@ -274,8 +276,19 @@ class ARSConfig(AlgoConfig):
             f"algo.step_size_end must be null or in [0, algo.step_size ({self.step_size})], got "
             f"{self.step_size_end}: lower it, or set algo.step_size_end=null for a constant α",
         )
+        check(
+            isinstance(self.reward_clip, bool) or 0 < self.reward_clip < math.inf,
+            f"algo.reward_clip must be true, false or a number > 0, got {self.reward_clip}",
+        )
         if isinstance(self.ray, dict):  # rebuilt from a run's config.yaml
             self.ray = RayConfig(**self.ray)
+
+    @property
+    def reward_bound(self) -> float | None:
+        """The bound training rewards are clipped to (None: not clipped)."""
+        if isinstance(self.reward_clip, bool):
+            return 1.0 if self.reward_clip else None
+        return float(self.reward_clip)
 
 
 @dataclass

@@ -100,6 +100,8 @@ class Reinforce(EnvAlgorithm):
     logits, or to a mean and a pre-sigmoid std per continuous action dimension.
     """
 
+    budget_key = "algo.epochs"
+
     cfg: ReinforceConfig
 
     def _build(self, env: EnvBase) -> None:

@@ -48,6 +48,8 @@ class ARS(Algorithm):
     LayerNorm MLP of ``examples/ars_layernorm.py``).
     """
 
+    budget_key = "algo.iterations"
+
     divergence_hint = "try a smaller algo.step_size or algo.noise"  # the end of its error
 
     cfg: ARSConfig
@@ -78,7 +80,7 @@ class ARS(Algorithm):
             **params,
             max_steps=cfg.episode_length,
             reward_offset=cfg.alive_bonus_offset,
-            reward_clip=1.0 if cfg.reward_clip else None,
+            reward_clip=cfg.reward_bound,
             normalizer=normalizer if cfg.normalize_observations else None,
             ray_address=cfg.ray.address,
             ray_num_cpus=cfg.ray.num_cpus,
