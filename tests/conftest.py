@@ -45,6 +45,15 @@ def torchrl_stepped(env_cfg: Any) -> Callable[[], Any]:
     return build
 
 
+def _child_env(pythonpath: Path | None = None, env: dict[str, str] | None = None) -> dict:
+    """A child's environment: ours, headless, with ``env`` added and ``pythonpath`` first."""
+    env = {**os.environ, "SDL_VIDEODRIVER": "dummy", **(env or {})}
+    if pythonpath is not None:
+        env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(pythonpath), env.get("PYTHONPATH")]))
+    env.pop("HYDRA_FULL_ERROR", None)
+    return env
+
+
 def run_module(
     module: str,
     *args: str,
@@ -55,17 +64,28 @@ def run_module(
 ) -> subprocess.CompletedProcess:
     """``python -m <module> args...`` in ``cwd`` (``pythonpath``: a folder to import from;
     ``env``: more environment variables); returns the completed process (text output)."""
-    env = {**os.environ, "SDL_VIDEODRIVER": "dummy", **(env or {})}
-    if pythonpath is not None:
-        env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(pythonpath), env.get("PYTHONPATH")]))
-    env.pop("HYDRA_FULL_ERROR", None)
     return subprocess.run(
         [sys.executable, "-m", module, *args],
         cwd=cwd,
-        env=env,
+        env=_child_env(pythonpath, env),
         capture_output=True,
         text=True,
         timeout=timeout,
+    )
+
+
+def start_module(
+    module: str, *args: str, cwd: Path, stdout: int = subprocess.PIPE
+) -> subprocess.Popen:
+    """``python -m <module> args...`` started in the background in ``cwd``, in
+    :func:`run_module`'s environment (stderr piped, text)."""
+    return subprocess.Popen(
+        [sys.executable, "-m", module, *args],
+        cwd=cwd,
+        env=_child_env(),
+        stdout=stdout,
+        stderr=subprocess.PIPE,
+        text=True,
     )
 
 

@@ -14,7 +14,6 @@ import json
 import os
 import signal
 import subprocess
-import sys
 import time
 import uuid
 from collections.abc import Callable, Iterator
@@ -24,7 +23,7 @@ from pathlib import Path
 from unittest import mock
 
 import pytest
-from conftest import run_module
+from conftest import run_module, start_module
 
 from rlpipe.checkpoint import load_checkpoint
 from rlpipe.rundir import RunDir
@@ -180,16 +179,7 @@ def rlpipe(
 def popen(*args: str, cwd: Path, tag: str, fault: str | None = None) -> subprocess.Popen:
     """``python -m rlpipe args...`` started in the background (``run_module``'s environment)."""
     with environment(tag, fault):
-        env = {**os.environ, "SDL_VIDEODRIVER": "dummy"}
-    env.pop("HYDRA_FULL_ERROR", None)
-    return subprocess.Popen(
-        [sys.executable, "-m", "rlpipe", *args],
-        cwd=cwd,
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+        return start_module("rlpipe", *args, cwd=cwd)
 
 
 def live_processes(tag: str) -> list[int]:

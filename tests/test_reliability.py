@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import run_module
+from conftest import run_module, start_module
 from tensordict.nn import TensorDictModule
 from torch import nn
 
@@ -45,16 +45,7 @@ def _steps(run_dir: Path, name: str) -> list[int]:
 
 
 def _popen(tmp_path: Path, *args: str) -> subprocess.Popen:
-    env = {**os.environ, "SDL_VIDEODRIVER": "dummy"}
-    env.pop("HYDRA_FULL_ERROR", None)
-    return subprocess.Popen(
-        [sys.executable, "-m", "rlpipe", *args],
-        cwd=tmp_path,
-        env=env,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    return start_module("rlpipe", *args, cwd=tmp_path, stdout=subprocess.DEVNULL)
 
 
 def _wait_for_checkpoint(proc: subprocess.Popen, run_dir: Path, timeout: float = 240) -> None:
