@@ -26,9 +26,10 @@ def say(line: str, *, err: bool = False) -> None:
     RUN_LOG.log(logging.WARNING if err else logging.INFO, line)
 
 
-def warn(message: str) -> None:
-    """``rlpipe: warning: <message>`` on stderr and in the run's log."""
-    say(f"rlpipe: warning: {message}", err=True)
+def warn(message: str | None) -> None:
+    """``rlpipe: warning: <message>`` on stderr and in the run's log (None: nothing)."""
+    if message is not None:
+        say(f"rlpipe: warning: {message}", err=True)
 
 
 class RunLogHandler(logging.FileHandler):

@@ -20,7 +20,7 @@ from rlpipe.algos.base import EPISODE_FRAMES, EPISODE_RETURN, Algorithm, Metrics
 from rlpipe.budget import check_budget, ended_short, no_evaluation_inside, spent
 from rlpipe.cadence import Cadence, Window
 from rlpipe.config import Config, config_to_dict
-from rlpipe.console import say
+from rlpipe.console import say, warn
 from rlpipe.episodes import EvalResult, EvalStopped, evaluate
 from rlpipe.errors import RlpipeError, check
 from rlpipe.outcomes import Diverged, Interrupted, RunResult, not_finite
@@ -169,9 +169,7 @@ class Runner:
                 stored = self._stored_summary()
                 if stored is not None or self.last_eval is not None:
                     return self._finished_before(stored)
-            warning = no_evaluation_inside(self.algo, self.total_frames, self.eval_every)
-            if warning is not None:
-                say(f"rlpipe: warning: {warning}", err=True)
+            warn(no_evaluation_inside(self.algo, self.total_frames, self.eval_every))
             return self._loop()
 
     def _loop(self) -> RunResult:
@@ -207,9 +205,7 @@ class Runner:
                 if due:
                     self.save()
                     self.algo.restart_episodes()  # as a run resumed from this checkpoint does
-            short = ended_short(self.algo, self.total_frames)
-            if short is not None:
-                say(f"rlpipe: warning: {short}", err=True)
+            warn(ended_short(self.algo, self.total_frames))
             self._evaluate()
             bar.show(self._last_return, self.last_eval)  # the bar ends on the final evaluation
             if signals.received is not None:
