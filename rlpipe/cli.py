@@ -167,7 +167,8 @@ def trap_notice(algo: AlgoConfig, env_id: str) -> str | None:
     fail on ``env_id`` (:data:`EXPLORATION_TRAPS`) and it does not set what escapes the trap
     (:data:`TRAP_ESCAPES`); None elsewhere."""
     why = EXPLORATION_TRAPS.get(env_id.split(":")[-1])
-    if why is None or getattr(algo, TRAP_ESCAPES.get(algo.name, ""), 0):
+    escape = TRAP_ESCAPES.get(algo.name)
+    if why is None or (escape is not None and getattr(algo, escape)):
         return None
     return f"rlpipe: note: {algo.name}'s defaults on {env_id}: {why}"
 
