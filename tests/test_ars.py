@@ -193,28 +193,30 @@ def test_algorithm_checkpoint_holds_normaliser_and_parameters():
 
 
 @pytest.mark.parametrize("budget", ["total_frames", "iterations"])
-def test_step_size_anneals_over_the_budget_and_stays_put_by_default(budget):
-    """α follows algo.step_size_end linearly over the run's frames (or its iterations when
-    no frame budget is set); without step_size_end it is algo.step_size throughout."""
+def test_step_size_and_clip_anneal_over_the_budget_and_stay_put_by_default(budget):
+    """α follows algo.step_size_end, and the reward clip's bound algo.reward_clip_end, linearly
+    over the run's frames (or its iterations when no frame budget is set); without them they
+    are algo.step_size and algo.reward_clip's bound throughout (none with reward_clip=false)."""
 
-    def alphas(**kw):
+    def schedule(**kw):
         torch.manual_seed(0)
         cfg = ARSConfig(num_directions=2, num_best=1, workers=1, step_size=0.04, **kw)
         algo, seen = ARS(partial(make_env, CARTPOLE), cfg), []
         for _ in range(3):
             done = (algo.frames, cfg.total_frames) if cfg.total_frames else (algo.iterations, 4)
             algo.train_step()
-            seen.append((algo.search.step_size, done))
+            seen.append((algo.search.step_size, algo.search.reward_clip, min(done[0] / done[1], 1)))
         algo.close()
         return seen
 
     kw = {"total_frames": 100} if budget == "total_frames" else {"iterations": 4}
-    annealed = alphas(step_size_end=0.0, **kw)
-    assert [a for a, _ in annealed] == pytest.approx(
-        [0.04 * (1 - min(d / t, 1)) for _, (d, t) in annealed]
+    annealed = schedule(step_size_end=0.0, reward_clip=2, reward_clip_end=10, **kw)
+    assert [(a, c) for a, c, _ in annealed] == pytest.approx(
+        [(0.04 * (1 - f), 2 + 8 * f) for _, _, f in annealed]
     )
-    assert annealed[0][0] == pytest.approx(0.04) and annealed[-1][0] < 0.04
-    assert {a for a, _ in alphas(**kw)} == {0.04}
+    assert annealed[0][:2] == pytest.approx((0.04, 2)) and annealed[-1][1] > 2
+    assert {(a, c) for a, c, _ in schedule(**kw)} == {(0.04, 1.0)}
+    assert {c for _, c, _ in schedule(reward_clip=False, **kw)} == {None}
 
 
 def test_config_checks():
@@ -232,6 +234,9 @@ def test_config_checks():
         ARSConfig(step_size=0.02, step_size_end=0.03)
     with pytest.raises(RlpipeError, match="algo.reward_clip must be true, false or a number > 0"):
         ARSConfig(reward_clip=float("inf"))
+    for bad in ({"reward_clip": False, "reward_clip_end": 10}, {"reward_clip_end": 0}):
+        with pytest.raises(RlpipeError, match="algo.reward_clip_end must be null, or a number"):
+            ARSConfig(**bad)
     # true: the notebook's [-1, 1]; a number: that bound; false: no clip
     bounds = [ARSConfig(reward_clip=v).reward_bound for v in (True, 10, 2.5, False)]
     assert bounds == [1.0, 10.0, 2.5, None]
@@ -289,6 +294,10 @@ BAD = [
     (["algo.noise=0"], "algo.noise must be a finite number > 0"),
     (["algo.step_size=-1"], "algo.step_size must be a finite number > 0"),
     (["algo.reward_clip=-1"], "algo.reward_clip must be true, false or a number > 0, got -1"),
+    (
+        ["algo.reward_clip=false", "algo.reward_clip_end=10"],
+        "algo.reward_clip_end must be null, or a number > 0 with algo.reward_clip true or a number",
+    ),
     # the preset anneals α to 0.01: a smaller α alone says how to keep it
     (["algo.step_size=0.005"], "algo.step_size_end must be null or in [0, algo.step_size (0.005)]"),
 ]

@@ -24,6 +24,24 @@ from rlpipe.envs import make_env
 from rlpipe.errors import RlpipeError
 
 
+@pytest.mark.parametrize("workers", [1, 2])
+def test_each_iteration_clips_rewards_at_the_bound_it_is_given(workers):
+    """The clip bound travels with every roll_out (ARS anneals it between iterations), to this
+    process's envs and to the workers alike: CartPole's +1 a step clipped at 0.5 counts 0.5."""
+    search = small_search(seed=5, workers=workers)
+    try:
+        search.start()
+        population = 2 * search.num_directions
+        flat, seeds = search.theta.expand(population, -1).clone(), torch.arange(population)
+        for bound, per_step in ((None, 1.0), (0.5, 0.5), (None, 1.0)):
+            results = [r for _, r in search._backend.roll_out(flat, seeds, bound)]
+            lengths = torch.cat([r.lengths for r in results]).double()
+            assert torch.equal(torch.cat([r.raw_returns for r in results]), lengths)
+            assert torch.equal(torch.cat([r.returns for r in results]), per_step * lengths)
+    finally:
+        search.close()
+
+
 @pytest.mark.parametrize(
     ("short", "here"),
     [(0.0, False), (math.inf, True)],

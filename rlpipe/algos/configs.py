@@ -260,6 +260,10 @@ class ARSConfig(AlgoConfig):
     # training rewards clipped to [-1, 1] (true: the notebook's), to [-c, c] (a number c: a
     # fall's -100 counts as -c) or not at all (false)
     reward_clip: bool | int | float = True
+    # null: the clip bound stays; a number: the bound moves linearly from reward_clip's to it over
+    # total_frames (or iterations), e.g. 1 -> 100: falls cost little while the walker learns to
+    # move, and their full -100 once it walks (the penalty grows as the budget ends)
+    reward_clip_end: float | None = None
     alive_bonus_offset: float = 0.0  # added to every training reward (RL Zoo: -0.1 for Bipedal)
     normalize_observations: bool = True  # ARS V2: running mean/variance, frozen for evaluation
     policy: str = checked("linear", choices=ARS_POLICIES)
@@ -279,6 +283,13 @@ class ARSConfig(AlgoConfig):
         check(
             isinstance(self.reward_clip, bool) or 0 < self.reward_clip < math.inf,
             f"algo.reward_clip must be true, false or a number > 0, got {self.reward_clip}",
+        )
+        check(
+            self.reward_clip_end is None
+            or (self.reward_bound is not None and 0 < self.reward_clip_end < math.inf),
+            f"algo.reward_clip_end must be null, or a number > 0 with algo.reward_clip true or a "
+            f"number, got {self.reward_clip_end} (algo.reward_clip="
+            f"{str(self.reward_clip).lower()}): set algo.reward_clip_end=null for a fixed bound",
         )
         if isinstance(self.ray, dict):  # rebuilt from a run's config.yaml
             self.ray = RayConfig(**self.ray)

@@ -93,13 +93,15 @@ class ARS(Algorithm):
         return self.search.iterations
 
     def train_step(self) -> Metrics:
-        cfg = self.cfg  # α's schedule spans the run's frames, or its iterations if uncapped
+        cfg = self.cfg  # α's and the clip's schedules span the run's frames (or iterations)
         done, total = (
             (self.frames, cfg.total_frames)
             if cfg.total_frames
             else (self.iterations, cfg.iterations)
         )
         self.search.step_size = annealed(cfg.step_size, cfg.step_size_end, done, total)
+        if cfg.reward_bound is not None:
+            self.search.reward_clip = annealed(cfg.reward_bound, cfg.reward_clip_end, done, total)
         stats = self.search.step()
         self.frames += int(stats["env_steps"])  # every step of every perturbed rollout
         return {f"{'time' if key in TIMINGS else 'train'}/{key}": v for key, v in stats.items()}

@@ -40,8 +40,11 @@ RETIME_FACTOR = 2.0
 
 
 class Backend(Protocol):
-    def roll_out(self, flat: torch.Tensor, seeds: torch.Tensor) -> Shares:
-        """Roll out member ``i`` with parameters ``flat[i]`` from episode seed ``seeds[i]``."""
+    def roll_out(
+        self, flat: torch.Tensor, seeds: torch.Tensor, reward_clip: float | None = None
+    ) -> Shares:
+        """Roll out member ``i`` with parameters ``flat[i]`` from episode seed ``seeds[i]``,
+        training rewards clipped to ``[-reward_clip, reward_clip]`` (None: not clipped)."""
         ...
 
     def close(self) -> None: ...
@@ -63,7 +66,8 @@ def start_backend(
 
     ``"local"``: ``workers`` processes on this machine (1: this process, as one batch; 0: one
     per core); ``"ray"``: ``workers`` Ray actors (0: one per CPU of the cluster). Worker ``w``
-    builds its envs with ``seed + w``; ``options`` are :func:`rollout`'s keyword arguments.
+    builds its envs with ``seed + w``; ``options`` are :func:`rollout`'s keyword arguments
+    that stay for the whole search (``reward_clip`` comes with each ``roll_out``).
     """
     units = Units(policy, env_factory, seed, options)
     if backend == "ray":
@@ -82,8 +86,10 @@ class _InProcess:
     def __init__(self, rollouts: Rollouts, population: int) -> None:
         self.rollouts, self.members = rollouts, torch.arange(population)
 
-    def roll_out(self, flat: torch.Tensor, seeds: torch.Tensor) -> Shares:
-        return [(self.members, self.rollouts.run(None, flat, seeds.tolist()))]
+    def roll_out(
+        self, flat: torch.Tensor, seeds: torch.Tensor, reward_clip: float | None = None
+    ) -> Shares:
+        return [(self.members, self.rollouts.run(None, flat, seeds.tolist(), reward_clip))]
 
     def close(self) -> None:
         self.rollouts.close()
@@ -166,7 +172,9 @@ class _Processes(Pool):
             self._stop(grace=0.0)
             raise
 
-    def roll_out(self, flat: torch.Tensor, seeds: torch.Tensor) -> Shares:
+    def roll_out(
+        self, flat: torch.Tensor, seeds: torch.Tensor, reward_clip: float | None = None
+    ) -> Shares:
         if self._failure is not None:
             raise self._failure
         way = self._way()
@@ -175,9 +183,9 @@ class _Processes(Pool):
             for proc in self._procs.values():  # a dead worker stops training here too
                 if not proc.is_alive():
                     raise self._died(proc)
-            shares = self._here.roll_out(flat, seeds)
+            shares = self._here.roll_out(flat, seeds, reward_clip)
         else:
-            shares = super().roll_out(flat, seeds)
+            shares = super().roll_out(flat, seeds, reward_clip)
         seconds = time.perf_counter() - start
         self._steps = max(int(sum(result.lengths.sum() for _, result in shares)), 1)
         self._timed[way] = seconds, self._steps

@@ -40,11 +40,12 @@ class Pool:
     and iteration, as many as the policy's measured call cost allows:
     :func:`rlpipe.algos.ars.chunking.chunks_per_worker`) rather than owning a fixed share; one
     worker takes everything as one chunk.
-    A chunk carries its members' parameters and episode seeds, and the policy's state (the
-    normaliser changes every iteration) when it is the worker's first of the iteration, all as
-    NumPy arrays; only its :class:`RolloutResult` comes back. Subclasses fill
-    ``workers`` and say how a chunk is sent to a worker (:meth:`_submit`, returning a handle), how
-    to wait until some handles are done (:meth:`_wait`) and how to collect one (:meth:`_collect`).
+    A chunk carries its members' parameters and episode seeds, the iteration's reward clip, and
+    the policy's state (the normaliser changes every iteration) when it is the worker's first of
+    the iteration, all as NumPy arrays; only its :class:`RolloutResult` comes back. Subclasses
+    fill ``workers`` and say how a chunk is sent to a worker (:meth:`_submit`, returning a
+    handle), how to wait until some handles are done (:meth:`_wait`) and how to collect one
+    (:meth:`_collect`).
     """
 
     def __init__(self, units: Units, population: int, workers: int) -> None:
@@ -59,7 +60,9 @@ class Pool:
         self.chunks = list(torch.arange(population).split(self.chunk_size))
         self.workers: list[Any] = []
 
-    def roll_out(self, flat: torch.Tensor, seeds: torch.Tensor) -> Shares:
+    def roll_out(
+        self, flat: torch.Tensor, seeds: torch.Tensor, reward_clip: float | None = None
+    ) -> Shares:
         state = {key: value.numpy() for key, value in self.policy.state_dict().items()}
         flat_np = flat.numpy()
         pending = list(range(len(self.chunks)))
@@ -78,6 +81,7 @@ class Pool:
                     state if fresh else None,
                     flat_np[members.numpy()],
                     seeds[members].tolist(),
+                    reward_clip,
                 )
                 busy[handle] = index, worker
 

@@ -226,16 +226,21 @@ class Rollouts:
         self.envs = sub_envs(self.env) if self.pool is None else []
 
     def run(
-        self, state: dict[str, Any] | None, flat: torch.Tensor | np.ndarray, seeds: list[int]
+        self,
+        state: dict[str, Any] | None,
+        flat: torch.Tensor | np.ndarray,
+        seeds: list[int],
+        reward_clip: float | None = None,
     ) -> RolloutResult:
         """Roll out ``flat``'s members, after loading the policy ``state`` when one is given
-        (tensors or NumPy arrays: the worker backends send arrays, which pickle fast)."""
+        (tensors or NumPy arrays: the worker backends send arrays, which pickle fast), training
+        rewards clipped to ``[-reward_clip, reward_clip]`` (None: not clipped)."""
         if state is not None:
             self.policy.load_state_dict({key: torch.as_tensor(v) for key, v in state.items()})
-        flat = torch.as_tensor(flat)
+        flat, options = torch.as_tensor(flat), {**self.options, "reward_clip": reward_clip}
         if self.pool is not None:
-            return pool_rollout(self.policy, self.pool, flat, seeds, **self.options)
-        return rollout(self.policy, self.envs[: len(flat)], flat, seeds, **self.options)
+            return pool_rollout(self.policy, self.pool, flat, seeds, **options)
+        return rollout(self.policy, self.envs[: len(flat)], flat, seeds, **options)
 
     def close(self) -> None:
         if not self.env.is_closed:

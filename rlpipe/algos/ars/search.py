@@ -52,6 +52,9 @@ class ARSSearch:
         reward_clip: training rewards (after the offset) are clipped to
             ``[-reward_clip, reward_clip]``; None: not clipped (the default). The offset and
             the clip shape only the update: :meth:`step` reports the env's own returns.
+            ``step_size`` and ``reward_clip`` are attributes too, read by every :meth:`step`:
+            set them between steps to anneal them (the :class:`rlpipe.algos.ars.ARS` runner
+            does, for ``algo.step_size_end`` and ``algo.reward_clip_end``).
         normalizer: the :class:`Normalizer` inside ``policy`` whose statistics the search
             updates after every iteration (below). Default None: no statistics are kept.
         workers: ``"local"``: processes rolling out the members in chunks (1, the default: all
@@ -124,14 +127,14 @@ class ARSSearch:
     ) -> None:
         self.num_directions = num_directions
         self.num_best = num_directions if num_best is None else num_best
-        self.step_size, self.noise = step_size, noise
+        self.step_size, self.noise, self.reward_clip = step_size, noise, reward_clip
         self.max_steps, self.workers, self.backend = max_steps, workers, backend
         check_search_params(self, "")
         check_fields(self, "", at_least_one=("max_steps",))
         self.policy, self.normalizer = policy, normalizer
         self.generator = torch.Generator().manual_seed(seed)
         self.iterations = 0
-        options = dict(max_steps=max_steps, reward_offset=reward_offset, reward_clip=reward_clip)
+        options = dict(max_steps=max_steps, reward_offset=reward_offset)
         self._start_backend = partial(
             start_backend,
             policy,
@@ -183,7 +186,7 @@ class ARSSearch:
         # the direction, not the luck of two starts
         seeds = torch.randint(2**31 - 1, (self.num_directions,), generator=self.generator)
         seeds = seeds.repeat(2)
-        shares = self._backend.roll_out(flat, seeds)
+        shares = self._backend.roll_out(flat, seeds, self.reward_clip)
         returns, raw, lengths = (torch.empty(len(flat), dtype=torch.float64) for _ in range(3))
         for members, result in shares:
             returns[members] = result.returns
