@@ -217,6 +217,11 @@ def test_step_size_and_clip_anneal_over_the_budget_and_stay_put_by_default(budge
     assert annealed[0][:2] == pytest.approx((0.04, 2)) and annealed[-1][1] > 2
     assert {(a, c) for a, c, _ in schedule(**kw)} == {(0.04, 1.0)}
     assert {c for _, c, _ in schedule(reward_clip=False, **kw)} == {None}
+    # held at its start for the first reward_clip_from of the run, then moved over the rest
+    late = schedule(reward_clip=2, reward_clip_end=10, reward_clip_from=0.5, **kw)
+    assert [c for _, c, _ in late] == pytest.approx(
+        [2 + 8 * max(f - 0.5, 0) / 0.5 for *_, f in late]
+    )
 
 
 def test_config_checks():
@@ -237,6 +242,8 @@ def test_config_checks():
     for bad in ({"reward_clip": False, "reward_clip_end": 10}, {"reward_clip_end": 0}):
         with pytest.raises(RlpipeError, match="algo.reward_clip_end must be null, or a number"):
             ARSConfig(**bad)
+    with pytest.raises(RlpipeError, match=r"algo.reward_clip_from must be in \[0, 1\)"):
+        ARSConfig(reward_clip_from=1)
     # true: the notebook's [-1, 1]; a number: that bound; false: no clip
     bounds = [ARSConfig(reward_clip=v).reward_bound for v in (True, 10, 2.5, False)]
     assert bounds == [1.0, 10.0, 2.5, None]

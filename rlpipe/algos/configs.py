@@ -261,9 +261,10 @@ class ARSConfig(AlgoConfig):
     # fall's -100 counts as -c) or not at all (false)
     reward_clip: bool | int | float = True
     # null: the clip bound stays; a number: the bound moves linearly from reward_clip's to it over
-    # total_frames (or iterations), e.g. 1 -> 100: falls cost little while the walker learns to
-    # move, and their full -100 once it walks (the penalty grows as the budget ends)
+    # total_frames (or iterations), after the first reward_clip_from of them: e.g. 1 -> 10 from
+    # 0.5, falls cost little while the walker learns to move and more once it walks
     reward_clip_end: float | None = None
+    reward_clip_from: float = 0.0  # the fraction of the run before the bound starts to move
     alive_bonus_offset: float = 0.0  # added to every training reward (RL Zoo: -0.1 for Bipedal)
     normalize_observations: bool = True  # ARS V2: running mean/variance, frozen for evaluation
     policy: str = checked("linear", choices=ARS_POLICIES)
@@ -290,6 +291,11 @@ class ARSConfig(AlgoConfig):
             f"algo.reward_clip_end must be null, or a number > 0 with algo.reward_clip true or a "
             f"number, got {self.reward_clip_end} (algo.reward_clip="
             f"{str(self.reward_clip).lower()}): set algo.reward_clip_end=null for a fixed bound",
+        )
+        check(
+            0 <= self.reward_clip_from < 1,
+            f"algo.reward_clip_from must be in [0, 1) (the fraction of the run before the clip "
+            f"bound moves), got {self.reward_clip_from}",
         )
         if isinstance(self.ray, dict):  # rebuilt from a run's config.yaml
             self.ray = RayConfig(**self.ray)

@@ -101,7 +101,9 @@ class ARS(Algorithm):
         )
         self.search.step_size = annealed(cfg.step_size, cfg.step_size_end, done, total)
         if cfg.reward_bound is not None:
-            self.search.reward_clip = annealed(cfg.reward_bound, cfg.reward_clip_end, done, total)
+            self.search.reward_clip = annealed(
+                cfg.reward_bound, cfg.reward_clip_end, done, total, cfg.reward_clip_from
+            )
         stats = self.search.step()
         self.frames += int(stats["env_steps"])  # every step of every perturbed rollout
         return {f"{'time' if key in TIMINGS else 'train'}/{key}": v for key, v in stats.items()}
