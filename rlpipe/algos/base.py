@@ -49,15 +49,12 @@ TRANSITION_KEYS = (
 )
 
 
-def annealed(
-    start: float, end: float | None, frames: int, total: int | None, begin: float = 0.0
-) -> float:
+def annealed(start: float, end: float | None, frames: int, total: int | None) -> float:
     """A value annealed linearly from ``start`` to ``end`` over ``total`` frames (held there
-    after), held at ``start`` for the first ``begin`` fraction of them; ``start`` throughout
-    where ``end`` or ``total`` is None (e.g. DQN's ``lr_end``)."""
+    after); ``start`` throughout where ``end`` or ``total`` is None (e.g. DQN's ``lr_end``)."""
     if end is None or not total:
         return start
-    return start + min(max(frames / total - begin, 0.0) / (1.0 - begin), 1.0) * (end - start)
+    return start + min(max(frames / total, 0.0), 1.0) * (end - start)  # held before frame 0
 
 
 def batch_steps(env: EnvBase, frames: int) -> tuple[int, int]:

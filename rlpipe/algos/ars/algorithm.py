@@ -100,9 +100,10 @@ class ARS(Algorithm):
             else (self.iterations, cfg.iterations)
         )
         self.search.step_size = annealed(cfg.step_size, cfg.step_size_end, done, total)
-        if cfg.reward_bound is not None:
+        if cfg.reward_bound is not None:  # the clip's bound moves after its first part
+            begin = cfg.reward_clip_from * total
             self.search.reward_clip = annealed(
-                cfg.reward_bound, cfg.reward_clip_end, done, total, cfg.reward_clip_from
+                cfg.reward_bound, cfg.reward_clip_end, done - begin, total - begin
             )
         stats = self.search.step()
         self.frames += int(stats["env_steps"])  # every step of every perturbed rollout
