@@ -49,6 +49,8 @@ class Preset:
     resumable: bool = False
     # where the preset stays short of 8 of 10 held-out seeds: why, and what was tried
     short_of: str = ""
+    # where its time to the target stays above SPEED_TARGET x SB3's: why, and what was tried
+    slow: str = ""
 
     def normalised(self, score: float) -> float:
         """``score`` on the scale where the random policy is 0 and the target 1."""

@@ -144,6 +144,24 @@ def test_a_preset_short_of_8_of_10_says_so_in_its_row_and_note(bench) -> None:
     assert "short of" not in report.note(preset, cfg)
 
 
+def test_a_time_to_the_target_above_half_sb3s_is_flagged_and_its_note_says_why(bench) -> None:
+    report = bench.report
+    preset = bench.presets_table.PRESETS["dqn_cartpole"]
+    slow = bench.presets_table.Preset(**{**vars(preset), "slow": "tried C"})
+    cfg = SimpleNamespace(total_frames=40_000, eval_episodes=10, eval_every=10_000)
+    ours = [run(bench, 100, [100, 500, 500, 500], 500.0)]  # 500 at 20k frames, 8 s
+    theirs = [run(bench, 100, [100, 500, 500, 500], 500.0, "SB3", 5.0)]  # 500 at 10 s
+
+    def cell(p) -> str:
+        row = report.summary_row(p, cfg, report.Side(p, ours), report.Side(p, theirs), "M1")
+        return dict(zip(report.HEADERS, row))["rlpipe/SB3 s to target"]
+
+    assert cell(preset) == "0.80 (above 0.5)"
+    assert cell(slow) == "0.80 (above 0.5: see its note)"
+    assert report.note(slow, cfg).endswith("**time to the target above 0.5× SB3's**: tried C")
+    assert "above" not in report.note(preset, cfg)
+
+
 def test_a_record_from_before_a_config_field_existed_still_stands_at_its_default(bench) -> None:
     from rlpipe.cli import compose_run
 
