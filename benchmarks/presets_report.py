@@ -235,8 +235,8 @@ def note(p: Preset, cfg: Config) -> str:
         normalize = ", VecNormalize(norm_obs=True, norm_reward=False)" if p.sb3_normalize else ""
         text += f"; SB3: {p.sb3_algo}('{p.sb3_policy}', {kwargs}{normalize})"
     text += f"; **short of 8 of 10 held-out seeds**: {p.short_of}" if p.short_of else ""
-    slow = f"; **time to the target above {SPEED_TARGET:g}× SB3's**: {p.slow}"
-    return text + (slow if p.slow else "")
+    text += f"; **time to the target above {SPEED_TARGET:g}× SB3's**: {p.slow}" if p.slow else ""
+    return text
 
 
 HEADERS = [
