@@ -193,32 +193,37 @@ def test_algorithm_checkpoint_holds_normaliser_and_parameters():
 
 
 @pytest.mark.parametrize("budget", ["total_frames", "iterations"])
-def test_step_size_and_clip_anneal_over_the_budget_and_stay_put_by_default(budget):
-    """α follows algo.step_size_end, and the reward clip's bound algo.reward_clip_end, linearly
-    over the run's frames (or its iterations when no frame budget is set); without them they
-    are algo.step_size and algo.reward_clip's bound throughout (none with reward_clip=false)."""
+def test_step_size_noise_and_clip_anneal_over_the_budget_and_stay_put_by_default(budget):
+    """α follows algo.step_size_end, ν algo.noise_end, and the reward clip's bound
+    algo.reward_clip_end, linearly over the run's frames (or its iterations when no frame budget
+    is set); without them they are algo.step_size, algo.noise and algo.reward_clip's bound
+    throughout (none with reward_clip=false)."""
 
-    def schedule(**kw):
+    def schedule(**kw):  # (α, ν, clip bound, fraction of the run done) before each step
         torch.manual_seed(0)
         cfg = ARSConfig(num_directions=2, num_best=1, workers=1, step_size=0.04, **kw)
         algo, seen = ARS(partial(make_env, CARTPOLE), cfg), []
         for _ in range(3):
             done = (algo.frames, cfg.total_frames) if cfg.total_frames else (algo.iterations, 4)
             algo.train_step()
-            seen.append((algo.search.step_size, algo.search.reward_clip, min(done[0] / done[1], 1)))
+            search = algo.search
+            seen.append(
+                (search.step_size, search.noise, search.reward_clip, min(done[0] / done[1], 1))
+            )
         algo.close()
         return seen
 
     kw = {"total_frames": 100} if budget == "total_frames" else {"iterations": 4}
-    annealed = schedule(step_size_end=0.0, reward_clip=2, reward_clip_end=10, **kw)
-    assert [a for a, _, _ in annealed] == pytest.approx([0.04 * (1 - f) for *_, f in annealed])
-    assert [c for _, c, _ in annealed] == pytest.approx([2 + 8 * f for *_, f in annealed])
-    assert annealed[0][:2] == pytest.approx((0.04, 2)) and annealed[-1][1] > 2
-    assert {(a, c) for a, c, _ in schedule(**kw)} == {(0.04, 1.0)}
-    assert {c for _, c, _ in schedule(reward_clip=False, **kw)} == {None}
+    annealed = schedule(step_size_end=0.0, noise_end=0.01, reward_clip=2, reward_clip_end=10, **kw)
+    assert [a for a, *_ in annealed] == pytest.approx([0.04 * (1 - f) for *_, f in annealed])
+    assert [n for _, n, *_ in annealed] == pytest.approx([0.03 - 0.02 * f for *_, f in annealed])
+    assert [c for *_, c, _ in annealed] == pytest.approx([2 + 8 * f for *_, f in annealed])
+    assert annealed[0][:3] == pytest.approx((0.04, 0.03, 2)) and annealed[-1][1:3] != (0.03, 2)
+    assert {(a, n, c) for a, n, c, _ in schedule(**kw)} == {(0.04, 0.03, 1.0)}
+    assert {c for *_, c, _ in schedule(reward_clip=False, **kw)} == {None}
     # held at its start for the first reward_clip_from of the run, then moved over the rest
     late = schedule(reward_clip=2, reward_clip_end=10, reward_clip_from=0.5, **kw)
-    assert [c for _, c, _ in late] == pytest.approx(
+    assert [c for *_, c, _ in late] == pytest.approx(
         [2 + 8 * max(f - 0.5, 0) / 0.5 for *_, f in late]
     )
 
@@ -236,6 +241,10 @@ def test_config_checks():
         ARSConfig(step_size=float("nan"))
     with pytest.raises(RlpipeError, match=r"step_size_end must be null or in \[0, algo.step_"):
         ARSConfig(step_size=0.02, step_size_end=0.03)
+    with pytest.raises(RlpipeError, match=r"noise_end must be null or in \(0, algo.noise \(0.03"):
+        ARSConfig(noise_end=0.05)
+    with pytest.raises(RlpipeError, match=r"noise_end must be null or in \(0, algo.noise"):
+        ARSConfig(noise_end=0)
     with pytest.raises(RlpipeError, match="algo.reward_clip must be true, false or a number > 0"):
         ARSConfig(reward_clip=float("inf"))
     for bad in ({"reward_clip": False, "reward_clip_end": 10}, {"reward_clip_end": 0}):
@@ -299,6 +308,7 @@ BAD = [
     ),
     (["algo.noise=0"], "algo.noise must be a finite number > 0"),
     (["algo.step_size=-1"], "algo.step_size must be a finite number > 0"),
+    (["algo.noise_end=0.05"], "algo.noise_end must be null or in (0, algo.noise (0.03)], got 0.05"),
     (["algo.reward_clip=-1"], "algo.reward_clip must be true, false or a number > 0, got -1"),
     (
         ["algo.reward_clip=false", "algo.reward_clip_end=10"],

@@ -255,6 +255,9 @@ class ARSConfig(AlgoConfig):
     # so that the policy settles as the budget ends, rather than being caught mid-jump
     step_size_end: float | None = None
     noise: float = 0.03  # ν: perturbations are θ ± ν·δ
+    # null: a constant ν; a number > 0: ν annealed linearly to it, as step_size_end does α
+    # (a finer search near the end, where a walker that nearly walks is easily tipped over)
+    noise_end: float | None = None
     # cap on training rollouts (the env's own limit still applies)
     episode_length: int = checked(2000, "at_least_one")
     # training rewards clipped to [-1, 1] (true: the notebook's), to [-c, c] (a number c: a
@@ -280,6 +283,11 @@ class ARSConfig(AlgoConfig):
             self.step_size_end is None or 0 <= self.step_size_end <= self.step_size,
             f"algo.step_size_end must be null or in [0, algo.step_size ({self.step_size})], got "
             f"{self.step_size_end}: lower it, or set algo.step_size_end=null for a constant α",
+        )
+        check(
+            self.noise_end is None or 0 < self.noise_end <= self.noise,
+            f"algo.noise_end must be null or in (0, algo.noise ({self.noise})], got "
+            f"{self.noise_end}: lower it, or set algo.noise_end=null for a constant ν",
         )
         check(
             isinstance(self.reward_clip, bool) or 0 < self.reward_clip < math.inf,

@@ -93,13 +93,14 @@ class ARS(Algorithm):
         return self.search.iterations
 
     def train_step(self) -> Metrics:
-        cfg = self.cfg  # α's and the clip's schedules span the run's frames (or iterations)
+        cfg = self.cfg  # α's, ν's and the clip's schedules span the run's frames (or iterations)
         done, total = (
             (self.frames, cfg.total_frames)
             if cfg.total_frames
             else (self.iterations, cfg.iterations)
         )
         self.search.step_size = annealed(cfg.step_size, cfg.step_size_end, done, total)
+        self.search.noise = annealed(cfg.noise, cfg.noise_end, done, total)
         if cfg.reward_bound is not None:  # the clip's bound moves after its first part
             begin = cfg.reward_clip_from * total
             self.search.reward_clip = annealed(

@@ -52,9 +52,10 @@ class ARSSearch:
         reward_clip: training rewards (after the offset) are clipped to
             ``[-reward_clip, reward_clip]``; None: not clipped (the default). The offset and
             the clip shape only the update: :meth:`step` reports the env's own returns.
-            ``step_size`` and ``reward_clip`` are attributes too, read by every :meth:`step`:
-            set them between steps to anneal them (the :class:`rlpipe.algos.ars.ARS` runner
-            does, for ``algo.step_size_end`` and ``algo.reward_clip_end``).
+            ``step_size``, ``noise`` and ``reward_clip`` are attributes too, read by every
+            :meth:`step`: set them between steps to anneal them (the :class:`rlpipe.algos.ars.ARS`
+            runner does, for ``algo.step_size_end``, ``algo.noise_end`` and
+            ``algo.reward_clip_end``).
         normalizer: the :class:`Normalizer` inside ``policy`` whose statistics the search
             updates after every iteration (below). Default None: no statistics are kept.
         workers: ``"local"``: processes rolling out the members in chunks (1, the default: all
