@@ -255,7 +255,7 @@ class ARSConfig(AlgoConfig):
     # so that the policy settles as the budget ends, rather than being caught mid-jump
     step_size_end: float | None = None
     noise: float = 0.03  # ν: perturbations are θ ± ν·δ
-    # null: a constant ν; a number > 0: ν annealed linearly to it, as step_size_end does α
+    # null: a constant ν; in (0, noise]: ν annealed linearly to it, as step_size_end does α
     # (a finer search near the end, where a walker that nearly walks is easily tipped over)
     noise_end: float | None = None
     # cap on training rollouts (the env's own limit still applies)
