@@ -310,6 +310,8 @@ BAD = [
     (["algo.step_size=-1"], "algo.step_size must be a finite number > 0"),
     (["algo.noise_end=0.05"], "algo.noise_end must be null or in (0, algo.noise (0.03)], got 0.05"),
     (["algo.reward_clip=-1"], "algo.reward_clip must be true, false or a number > 0, got -1"),
+    (["algo.starts=0"], "algo.starts must be"),
+    (["algo.starts_until=1"], "algo.starts_until must be in (0, 1)"),
     (
         ["algo.reward_clip=false", "algo.reward_clip_end=10"],
         "algo.reward_clip_end must be null, or a number > 0 with algo.reward_clip true or a number",

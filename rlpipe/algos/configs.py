@@ -269,6 +269,10 @@ class ARSConfig(AlgoConfig):
     reward_clip_end: float | None = None
     reward_clip_from: float = 0.0  # the fraction of the run before the bound starts to move
     alive_bonus_offset: float = 0.0  # added to every training reward (RL Zoo: -0.1 for Bipedal)
+    # several starts searched in turn, the worse half dropped at each of ceil(log2(starts))
+    # rungs, one left after the first starts_until of the run (rlpipe/algos/ars/starts.py)
+    starts: int = checked(1, "at_least_one")
+    starts_until: float = 0.375
     normalize_observations: bool = True  # ARS V2: running mean/variance, frozen for evaluation
     policy: str = checked("linear", choices=ARS_POLICIES)
     hidden_sizes: list[int] = checked([32, 32], "sizes")  # policy=mlp only
@@ -304,6 +308,11 @@ class ARSConfig(AlgoConfig):
             0 <= self.reward_clip_from < 1,
             f"algo.reward_clip_from must be in [0, 1) (the fraction of the run before the clip "
             f"bound moves), got {self.reward_clip_from}",
+        )
+        check(
+            0 < self.starts_until < 1,
+            f"algo.starts_until must be in (0, 1) (the fraction of the run after which one start "
+            f"remains), got {self.starts_until}",
         )
         if isinstance(self.ray, dict):  # rebuilt from a run's config.yaml
             self.ray = RayConfig(**self.ray)

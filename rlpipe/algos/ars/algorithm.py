@@ -15,6 +15,7 @@ from torchrl.data import Bounded, Categorical
 from torchrl.envs import EnvBase
 
 from rlpipe.algos.ars.search import ARSSearch
+from rlpipe.algos.ars.starts import Starts
 from rlpipe.algos.base import Algorithm, Metrics, annealed
 from rlpipe.algos.configs import SEARCH_PARAMS, ARSConfig, RayConfig
 from rlpipe.envs import envpool_env, episode_limit, is_discrete, num_actions, observation_size
@@ -86,6 +87,7 @@ class ARS(Algorithm):
             ray_num_cpus=cfg.ray.num_cpus,
             seed=seed,
         )
+        self.starts = Starts(cfg.starts, cfg.starts_until) if cfg.starts > 1 else None
 
     @property
     def iterations(self) -> int:
@@ -106,17 +108,31 @@ class ARS(Algorithm):
             self.search.reward_clip = annealed(
                 cfg.reward_bound, cfg.reward_clip_end, done - begin, total - begin
             )
+        if self.starts is not None:
+            self.starts.next_turn(self.policy)
         stats = self.search.step()
         self.frames += int(stats["env_steps"])  # every step of every perturbed rollout
-        return {f"{'time' if key in TIMINGS else 'train'}/{key}": v for key, v in stats.items()}
+        metrics = {f"{'time' if k in TIMINGS else 'train'}/{k}": v for k, v in stats.items()}
+        if self.starts is not None:  # the leader goes back into the policy
+            done = self.frames if cfg.total_frames else self.iterations
+            self.starts.record(
+                self.policy, stats["return_mean"], int(stats["env_steps"]), done / total
+            )
+            metrics["train/starts_live"] = len(self.starts.live)
+        return metrics
 
     def state_dict(self) -> dict[str, Any]:
         # the search's keys beside frames: the layout ARS checkpoints have always had
-        return {**self.search.state_dict(), "frames": self.frames}
+        state = {**self.search.state_dict(), "frames": self.frames}
+        if self.starts is not None:
+            state["starts"] = self.starts.state_dict()
+        return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.search.load_state_dict(state)
         self.frames = int(state["frames"])
+        if self.starts is not None:
+            self.starts.load_state_dict(state["starts"])
 
     def start_from(self, state: dict[str, Any], parts: Collection[str], parent: Any) -> None:
         """θ and the normaliser's statistics of another run's checkpoint (``init_from``);
