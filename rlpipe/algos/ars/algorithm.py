@@ -94,13 +94,15 @@ class ARS(Algorithm):
         """ARS iterations done (the search's counter)."""
         return self.search.iterations
 
+    def _progress(self) -> tuple[int, int]:
+        """The run's progress as (done, total): frames, or iterations without a frame budget."""
+        if self.cfg.total_frames:
+            return self.frames, self.cfg.total_frames
+        return self.iterations, self.cfg.iterations
+
     def train_step(self) -> Metrics:
         cfg = self.cfg  # α's, ν's and the clip's schedules span the run's frames (or iterations)
-        done, total = (
-            (self.frames, cfg.total_frames)
-            if cfg.total_frames
-            else (self.iterations, cfg.iterations)
-        )
+        done, total = self._progress()
         self.search.step_size = annealed(cfg.step_size, cfg.step_size_end, done, total)
         self.search.noise = annealed(cfg.noise, cfg.noise_end, done, total)
         if cfg.reward_bound is not None:  # the clip's bound moves after its first part
@@ -114,7 +116,7 @@ class ARS(Algorithm):
         self.frames += int(stats["env_steps"])  # every step of every perturbed rollout
         metrics = {f"{'time' if k in TIMINGS else 'train'}/{k}": v for k, v in stats.items()}
         if self.starts is not None:  # the leader goes back into the policy
-            done = self.frames if cfg.total_frames else self.iterations
+            done, total = self._progress()
             self.starts.record(
                 self.policy, stats["return_mean"], int(stats["env_steps"]), done / total
             )

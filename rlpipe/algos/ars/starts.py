@@ -55,10 +55,11 @@ class Starts:
         self.steps[k] += steps
         while self.halvings < self.rungs and done >= self.until * (self.halvings + 1) / self.rungs:
             keep = math.ceil(len(self.live) / 2)
-            self.live = sorted(self.live, key=self.score, reverse=True)[:keep]
+            ranked = sorted(self.live, key=self.score, reverse=True)
+            self.live = ranked[:keep]
+            for gone in ranked[keep:]:
+                self.states[gone] = {}  # a dropped candidate's state is not kept
             self.halvings += 1
-        for gone in set(range(self.count)) - set(self.live):
-            self.states[gone] = {}  # a dropped candidate's state is not kept
         policy.load_state_dict(self.states[self.leader])
 
     def score(self, k: int) -> float:
