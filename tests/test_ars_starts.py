@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import re
 from functools import partial
 
 import pytest
@@ -71,7 +72,7 @@ def _ars(**kw) -> ARS:
     return ARS(partial(make_env, CARTPOLE), cfg)
 
 
-def test_ars_runs_starts_until_one_remains_and_resumes_exactly():
+def test_ars_runs_starts_until_one_remains_and_resumes_exactly(capsys):
     algo = _ars(starts=4, starts_until=0.5)
     live = []
     for _ in range(10):
@@ -80,6 +81,15 @@ def test_ars_runs_starts_until_one_remains_and_resumes_exactly():
         leader = algo.starts.states[algo.starts.leader]
         assert torch.equal(algo.policy.state_dict()[WEIGHT], leader[WEIGHT])
     assert live == sorted(live, reverse=True) and live[0] == 4 and live[-1] == 1
+    # each halving says one line on the console: who stays, on what recent returns
+    said = [line for line in capsys.readouterr().out.splitlines() if "ARS starts" in line]
+    assert [line.split(" kept")[0] for line in said] == [
+        "rlpipe: ARS starts: 2 of 4",
+        "rlpipe: ARS starts: 1 of 2",
+    ]
+    assert re.search(
+        r"frames \(recent returns [-\d.]+, [-\d.]+; dropped [-\d.]+, [-\d.]+\)$", said[0]
+    )
     # resumed from a checkpoint after 5 steps: the same θ after 10
     half = _ars(starts=4, starts_until=0.5)
     for _ in range(5):

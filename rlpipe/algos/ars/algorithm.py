@@ -18,6 +18,7 @@ from rlpipe.algos.ars.search import ARSSearch
 from rlpipe.algos.ars.starts import Starts
 from rlpipe.algos.base import Algorithm, Metrics, annealed
 from rlpipe.algos.configs import SEARCH_PARAMS, ARSConfig, RayConfig
+from rlpipe.console import say
 from rlpipe.envs import envpool_env, episode_limit, is_discrete, num_actions, observation_size
 from rlpipe.errors import RlpipeError
 from rlpipe.models import ArgmaxAction, ClampAction, mlp, user_network
@@ -117,11 +118,22 @@ class ARS(Algorithm):
         metrics = {f"{'time' if k in TIMINGS else 'train'}/{k}": v for k, v in stats.items()}
         if self.starts is not None:  # the leader goes back into the policy
             done, total = self._progress()
-            self.starts.record(
+            dropped = self.starts.record(
                 self.policy, stats["return_mean"], int(stats["env_steps"]), done / total
             )
+            if dropped:
+                say(self._halving_line(dropped, done))
             metrics["train/starts_live"] = len(self.starts.live)
         return metrics
+
+    def _halving_line(self, dropped: list[int], done: int) -> str:
+        """The console's line on a halving of the starts: who stays, who goes, on what scores."""
+        starts, unit = self.starts, "frames" if self.cfg.total_frames else "iterations"
+        kept, gone = ([f"{starts.score(k):.1f}" for k in ks] for ks in (starts.live, dropped))
+        return (
+            f"rlpipe: ARS starts: {len(kept)} of {len(kept) + len(gone)} kept at {done:,} "
+            f"{unit} (recent returns {', '.join(kept)}; dropped {', '.join(gone)})"
+        )
 
     def state_dict(self) -> dict[str, Any]:
         # the search's keys beside frames: the layout ARS checkpoints have always had

@@ -46,10 +46,11 @@ class Starts:
         self.turn = min(self.live, key=lambda k: (self.steps[k], k))
         policy.load_state_dict(self.states[self.turn])
 
-    def record(self, policy: nn.Module, return_mean: float, steps: int, done: float) -> None:
+    def record(self, policy: nn.Module, return_mean: float, steps: int, done: float) -> list[int]:
         """Keep the stepped candidate's state and figures; halve at a rung passed (``done``:
-        the fraction of the run behind); load the leader into ``policy``."""
-        k = self.turn
+        the fraction of the run behind); load the leader into ``policy``. Returns the
+        candidates dropped by this call (none mostly)."""
+        k, dropped = self.turn, []
         self.states[k] = copy.deepcopy(policy.state_dict())
         self.returns[k] = (self.returns[k] + [return_mean])[-self.window :]
         self.steps[k] += steps
@@ -59,8 +60,10 @@ class Starts:
             self.live = ranked[:keep]
             for gone in ranked[keep:]:
                 self.states[gone] = {}  # a dropped candidate's state is not kept
+            dropped += ranked[keep:]
             self.halvings += 1
         policy.load_state_dict(self.states[self.leader])
+        return dropped
 
     def score(self, k: int) -> float:
         """Candidate ``k``'s mean return over its latest iterations (-inf before its first)."""
