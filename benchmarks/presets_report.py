@@ -4,9 +4,10 @@ Per preset: seeds solved (the protocol's rule: the last three evals' mean and th
 eval both ≥ the target), the interquartile mean (IQM) of the final evals with its 95% bootstrap
 interval over seeds, frames and training seconds to the target (first eval ≥ it: median and
 range over the seeds that reach it), the same for SB3 with the RL Zoo's settings on the same
-seeds, and the median over seeds both reach of rlpipe's training seconds to the target over
-SB3's. Over all presets: the IQM of the normalised finals with a 95% stratified-bootstrap
-interval (rliable's protocol), and the performance-profile figure (``presets_figure.py``).
+seeds, and the median over seeds both reach (run on one machine) of rlpipe's training seconds
+to the target over SB3's. Over all presets: the IQM of the normalised finals with a 95%
+stratified-bootstrap interval (rliable's protocol), and the performance-profile figure
+(``presets_figure.py``).
 """
 
 from __future__ import annotations
@@ -94,11 +95,21 @@ def seconds_to(run: Run, target: float) -> float | None:
 
 
 def ratio(ours: Side, theirs: Side, value: Callable[[Run], float | None]) -> str:
-    """Median over seeds of ``value(rlpipe run) / value(SB3 run)`` where both have one."""
-    mine = {r.seed: value(r) for r in ours.runs}
-    pairs = [(mine[r.seed], value(r)) for r in theirs.runs if r.seed in mine]
-    ratios = [a / b for a, b in pairs if a is not None and b]
-    return format(statistics.median(ratios), ".2f") if ratios else DASH
+    """Median over seeds of ``value(rlpipe run) / value(SB3 run)`` where both have one and
+    both ran on the same machine (seconds from two machines are not compared)."""
+    mine = {r.seed: r for r in ours.runs}
+    pairs = [(mine[r.seed], r) for r in theirs.runs if r.seed in mine]
+    ratios, elsewhere = [], 0
+    for a, b in pairs:
+        if (va := value(a)) is None or not (vb := value(b)):
+            continue
+        if split_day(a.machine)[1] != split_day(b.machine)[1]:
+            elsewhere += 1
+            continue
+        ratios.append(va / vb)
+    if ratios:
+        return format(statistics.median(ratios), ".2f")
+    return f"{DASH} (on other machines)" if elsewhere else DASH
 
 
 def budget(cfg: Config, runs: list[Run]) -> str:
@@ -125,7 +136,7 @@ def summary_row(preset: Preset, cfg: Config, ours: Side, theirs: Side, where: st
     else:
         cells += [theirs.solved(), iqm_cell(theirs.finals), theirs.to_target()[1]]
         to_target = ratio(ours, theirs, lambda r: seconds_to(r, preset.target))
-        if to_target != DASH and float(to_target) > SPEED_TARGET:
+        if not to_target.startswith(DASH) and float(to_target) > SPEED_TARGET:
             to_target += f" (above {SPEED_TARGET:g}" + (": see its note)" if preset.slow else ")")
         cells.append(to_target)
         cells.append(ratio(ours, theirs, lambda r: r.train_seconds))
@@ -152,14 +163,19 @@ def _seed_cells(run: Run | None, target: float) -> list[str]:
 
 
 def detail_rows(preset: Preset, ours: Side, theirs: Side, label: dict[str, str]) -> list[list[str]]:
-    """One row per seed: rlpipe's figures, the minutes its run took, and SB3's figures."""
+    """One row per seed: rlpipe's figures, the minutes its run took, SB3's figures, and the
+    machine (SB3's too where its run ran on another)."""
     by_seed = {r.seed: r for r in theirs.runs}
     rows = []
     for r in ours.runs:
         wall = DASH if r.wall is None else f"{r.wall / 60:.1f}"
         cells = [f"`{preset.experiment}`", str(r.seed), *_seed_cells(r, preset.target), wall]
-        cells += _seed_cells(by_seed.get(r.seed), preset.target)
-        rows.append([*cells, label.get(r.machine, DASH)])
+        sb3 = by_seed.get(r.seed)
+        cells += _seed_cells(sb3, preset.target)
+        where = label.get(r.machine, DASH)
+        if sb3 is not None and label.get(sb3.machine, DASH) != where:
+            where += f" (SB3: {label.get(sb3.machine, DASH)})"
+        rows.append([*cells, where])
     return rows
 
 

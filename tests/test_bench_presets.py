@@ -88,6 +88,23 @@ def test_a_machine_is_one_label_whatever_the_days_its_runs_ran_on(bench) -> None
     ]
 
 
+def test_a_seed_row_names_sb3_s_machine_where_it_ran_elsewhere(bench) -> None:
+    preset = bench.presets_table.PRESETS["dqn_cartpole"]
+    ours = [run(bench, 100, [500.0], 500.0), run(bench, 101, [500.0], 500.0)]
+    theirs = [run(bench, 100, [500.0], 500.0, "SB3"), run(bench, 101, [500.0], 500.0, "SB3")]
+    theirs[1].machine = "small"
+    label = bench.report.machines(ours + theirs)
+    sides = (bench.report.Side(preset, ours), bench.report.Side(preset, theirs))
+    rows = bench.report.detail_rows(preset, *sides, label)
+    assert [row[-1] for row in rows] == ["M1", "M1 (SB3: M2)"]
+    # seconds are compared on one machine only: seed 101's pair is left out of the ratio
+    ours[0].evals, theirs[0].evals = [(10_000, 500.0, 2.0)], [(10_000, 500.0, 8.0)]
+    ours[1].evals, theirs[1].evals = [(10_000, 500.0, 1.0)], [(10_000, 500.0, 100.0)]
+    assert bench.report.ratio(*sides, lambda r: r.evals[0][2]) == "0.25"
+    theirs[0].machine = "small"
+    assert bench.report.ratio(*sides, lambda r: r.evals[0][2]) == "– (on other machines)"
+
+
 def test_the_row_of_a_preset(bench) -> None:
     preset = bench.presets_table.PRESETS["dqn_cartpole"]
     report = bench.report
