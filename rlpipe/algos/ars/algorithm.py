@@ -95,15 +95,16 @@ class ARS(Algorithm):
         """ARS iterations done (the search's counter)."""
         return self.search.iterations
 
-    def _progress(self) -> tuple[int, int]:
-        """The run's progress as (done, total): frames, or iterations without a frame budget."""
+    def _progress(self) -> tuple[int, int, str]:
+        """The run's progress as (done, total, unit): frames, or iterations without a frame
+        budget."""
         if self.cfg.total_frames:
-            return self.frames, self.cfg.total_frames
-        return self.iterations, self.cfg.iterations
+            return self.frames, self.cfg.total_frames, "frames"
+        return self.iterations, self.cfg.iterations, "iterations"
 
     def train_step(self) -> Metrics:
         cfg = self.cfg  # α's, ν's and the clip's schedules span the run's frames (or iterations)
-        done, total = self._progress()
+        done, total, _ = self._progress()
         self.search.step_size = annealed(cfg.step_size, cfg.step_size_end, done, total)
         self.search.noise = annealed(cfg.noise, cfg.noise_end, done, total)
         if cfg.reward_bound is not None:  # the clip's bound moves after its first part
@@ -117,22 +118,22 @@ class ARS(Algorithm):
         self.frames += int(stats["env_steps"])  # every step of every perturbed rollout
         metrics = {f"{'time' if k in TIMINGS else 'train'}/{k}": v for k, v in stats.items()}
         if self.starts is not None:  # the leader goes back into the policy
-            done, total = self._progress()
+            done, total, unit = self._progress()
             dropped = self.starts.record(
                 self.policy, stats["return_mean"], int(stats["env_steps"]), done / total
             )
             if dropped:
-                say(self._halving_line(dropped, done))
+                say(self._halving_line(dropped, f"{done:,} {unit}"))
             metrics["train/starts_live"] = len(self.starts.live)
         return metrics
 
-    def _halving_line(self, dropped: list[int], done: int) -> str:
+    def _halving_line(self, dropped: list[int], when: str) -> str:
         """The console's line on a halving of the starts: who stays, who goes, on what scores."""
-        starts, unit = self.starts, "frames" if self.cfg.total_frames else "iterations"
+        starts = self.starts
         kept, gone = ([f"{starts.score(k):.1f}" for k in ks] for ks in (starts.live, dropped))
         return (
-            f"rlpipe: ARS starts: {len(kept)} of {len(kept) + len(gone)} kept at {done:,} "
-            f"{unit} (recent returns {', '.join(kept)}; dropped {', '.join(gone)})"
+            f"rlpipe: ARS starts: {len(kept)} of {len(kept) + len(gone)} kept at {when} "
+            f"(recent returns {', '.join(kept)}; dropped {', '.join(gone)})"
         )
 
     def state_dict(self) -> dict[str, Any]:

@@ -57,11 +57,10 @@ class Starts:
         while self.halvings < self.rungs and done >= self.until * (self.halvings + 1) / self.rungs:
             keep = math.ceil(len(self.live) / 2)
             ranked = sorted(self.live, key=self.score, reverse=True)
-            self.live = ranked[:keep]
-            for gone in ranked[keep:]:
-                self.states[gone] = {}  # a dropped candidate's state is not kept
-            dropped += ranked[keep:]
+            self.live, dropped = ranked[:keep], dropped + ranked[keep:]
             self.halvings += 1
+        for gone in dropped:
+            self.states[gone] = {}  # a dropped candidate's state is not kept
         policy.load_state_dict(self.states[self.leader])
         return dropped
 
