@@ -25,6 +25,13 @@ from rlpipe.config import Config
 from rlpipe.stats import iqm, pooled_iqm, pooled_iqm_band
 
 DASH = "–"
+SHARED = "‡"  # a seed (or a preset with such seeds) evaluated on the starts every seed met
+SHARED_NOTE = (
+    f"{SHARED} evaluated before each run's evaluations met starts of their own: every held-out "
+    "seed's periodic evals met nearly the same episode starts (seed + 10000 on consecutive "
+    "seeds), and every final eval seed 0's 100, which the tuning runs' final evals met too; "
+    "such records are kept until run again"
+)
 SPEED_TARGET = 0.5  # the issue's aim: rlpipe's time to the target at most half SB3's
 
 
@@ -128,7 +135,9 @@ def summary_row(preset: Preset, cfg: Config, ours: Side, theirs: Side, where: st
     frames, seconds = ours.to_target()
     cells = [f"`{preset.experiment}`", preset.env, budget(cfg, ours.runs), f"{preset.target:g}"]
     solved = ours.solved() + (" (short of 8/10: see its note)" if preset.short_of else "")
-    cells += [seed_text([r.seed for r in ours.runs]), solved, iqm_cell(ours.finals)]
+    shared = any(r.shared_starts for r in ours.runs + theirs.runs)
+    seeds = seed_text([r.seed for r in ours.runs]) + (f" {SHARED}" if shared else "")
+    cells += [seeds, solved, iqm_cell(ours.finals)]
     cells += [frames, seconds]
     if not theirs.runs:
         side = preset.no_sb3 or ("not run (--sb3)" if ours.runs else DASH)  # none yet: neither
@@ -169,8 +178,10 @@ def detail_rows(preset: Preset, ours: Side, theirs: Side, label: dict[str, str])
     rows = []
     for r in ours.runs:
         wall = DASH if r.wall is None else f"{r.wall / 60:.1f}"
-        cells = [f"`{preset.experiment}`", str(r.seed), *_seed_cells(r, preset.target), wall]
         sb3 = by_seed.get(r.seed)
+        shared = r.shared_starts or (sb3 is not None and sb3.shared_starts)
+        seed = f"{r.seed}" + (f" {SHARED}" if shared else "")
+        cells = [f"`{preset.experiment}`", seed, *_seed_cells(r, preset.target), wall]
         cells += _seed_cells(sb3, preset.target)
         where = label.get(r.machine, DASH)
         if sb3 is not None and label.get(sb3.machine, DASH) != where:
@@ -296,6 +307,8 @@ def tables(presets: list[Preset], configs: dict[str, Config], runs: list[Run]) -
         + "."
     )
     notes = [note(p, configs[p.experiment]) for p in presets]
+    if any(r.shared_starts for r in runs):
+        summary += f"\n\n{SHARED_NOTE}."
     lines = legend(runs)
     return [table(HEADERS, rows), "", summary, "", *notes, "", table(DETAIL_HEADERS, details)] + [
         "",

@@ -4,14 +4,15 @@ Each rlpipe run is exactly what a user runs, in a subprocess (``SDL_VIDEODRIVER=
 
     python -m rlpipe +experiment=<preset> seed=<s> progress=false checkpoint_every=0 \
         hydra.run.dir=<dir> [total_frames=<--frames>]
-    python -m rlpipe.evaluate run_dir=<dir> episodes=<final episodes>
+    python -m rlpipe.evaluate run_dir=<dir> episodes=<final episodes> seed=<episodes_seed(s, FINAL)>
 
 then its ``metrics/scalars/eval/return_mean.csv`` and ``time/train_seconds.csv`` give the evals
 (frames, mean, training seconds) and ``evaluation/trained-*.json`` the final greedy eval; all of
 it, with the machine and load it ran on, goes to the record ``rlpipe.json`` beside the run dir.
 A job whose record holds its evals is finished: a later call reads the record, not the run dir,
 so records kept without their run dirs (``benchmarks/results/presets/``, committed) carry a
-long benchmark across machines.
+long benchmark across machines. A record from before evaluations met starts of their own
+(:data:`EVAL_STARTS`) is read back too, and the table marks it; delete it to run it anew.
 """
 
 from __future__ import annotations
@@ -33,10 +34,13 @@ from common import machine, read_scalar
 from presets_table import Preset
 
 from rlpipe.config import Config, config_class, fingerprint
+from rlpipe.episodes import FINAL, episodes_seed
 from rlpipe.rundir import RunDir
 
 PACKAGES = ["torch", "torchrl", "tensordict", "gymnasium", "stable_baselines3", "sb3_contrib"]
 UNRECORDED = "not recorded (a run of an earlier version of presets.py)"
+# how a record's evaluations were seeded; records without it met starts shared by every seed
+EVAL_STARTS = "per run and evaluation (rlpipe.episodes.episodes_seed)"
 
 
 @dataclass
@@ -54,6 +58,7 @@ class Run:
     reused: bool = False  # read from an earlier call's --out, not run by this one
     machine: str = UNRECORDED  # machine() of the process that ran it
     load: tuple[float, float] | None = None  # 1-min load average at its start and end
+    shared_starts: bool = False  # evaluated on the starts every seed met (an older record)
 
     def hit(self, target: float) -> tuple[int, float] | None:
         """(frames, training seconds) of the first eval reaching ``target``."""
@@ -78,18 +83,21 @@ def record(where: Path, start_load: float, **result: object) -> dict:
     """Write ``result`` with this process's machine and the load at the start and now to
     ``where`` (JSON); the record is what a later call reads back."""
     saved = {**result, "machine": machine(PACKAGES), "load": [start_load, os.getloadavg()[0]]}
+    saved["eval_starts"] = EVAL_STARTS
     where.parent.mkdir(parents=True, exist_ok=True)
     where.write_text(json.dumps(saved, indent=2) + "\n")
     return saved
 
 
 def recorded(saved: dict) -> dict:
-    """The machine, load and wall fields of a record (absent in earlier versions' records)."""
+    """The machine, load, wall and eval starts fields of a record (absent in earlier versions'
+    records)."""
     load = saved.get("load")
     return {
         "machine": saved.get("machine", UNRECORDED),
         "load": tuple(load) if load else None,
         "wall": saved.get("wall"),
+        "shared_starts": saved.get("eval_starts") != EVAL_STARTS,
     }
 
 
@@ -185,7 +193,10 @@ def rlpipe_job(
     else:
         start = os.getloadavg()[0]
         _call(["-m", "rlpipe", *overrides], log, out)
-        _call(["-m", "rlpipe.evaluate", f"run_dir={run_dir}", f"episodes={episodes}"], log, out)
+        final = f"seed={episodes_seed(seed, FINAL)}"  # SB3's final eval meets the same starts
+        _call(
+            ["-m", "rlpipe.evaluate", f"run_dir={run_dir}", f"episodes={episodes}", final], log, out
+        )
         ran = RunDir(run_dir).read_config()
         saved = record(
             meta, start, **read_run(run_dir), config=identity(ran), backend=ran.env.backend

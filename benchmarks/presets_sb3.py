@@ -28,7 +28,7 @@ from presets_table import Preset
 
 from rlpipe.cadence import Cadence
 from rlpipe.config import Config
-from rlpipe.episodes import episode_quotas, eval_envs
+from rlpipe.episodes import EVALUATION, FINAL, episode_quotas, episodes_seed, eval_envs
 
 
 @dataclass(frozen=True)
@@ -154,7 +154,7 @@ def run_sb3(job: Sb3Job) -> dict[str, Any]:
 
         def evaluate(self) -> None:
             t0 = time.perf_counter()
-            seed = job.seed + 10_000 + len(self.evals)
+            seed = episodes_seed(job.seed, EVALUATION, self.num_timesteps)  # as rlpipe's runner
             returns = greedy_returns(self.model, self.envs, job.eval_episodes, seed, normalized)
             trained = self.seconds + t0 - self.start - self.off_clock
             self.evals.append((self.num_timesteps, float(np.mean(returns)), trained))
@@ -188,7 +188,8 @@ def run_sb3(job: Sb3Job) -> dict[str, Any]:
         callback.evaluate()  # like rlpipe's runner: always an eval at the end
     callback.envs.close()
     final_envs = gym.make_vec(job.env, num_envs=eval_envs(job.final_episodes))
-    final = greedy_returns(model, final_envs, job.final_episodes, 0, normalized)  # evaluate's seed
+    seed = episodes_seed(job.seed, FINAL)  # the starts of rlpipe's final eval
+    final = greedy_returns(model, final_envs, job.final_episodes, seed, normalized)
     final_envs.close()
     return {"evals": callback.evals, "final": float(np.mean(final))}
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+import numpy as np
 import torch
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase, ExplorationType, set_exploration_type
@@ -12,6 +13,18 @@ from torchrl.envs import EnvBase, ExplorationType, set_exploration_type
 from rlpipe import faults
 
 MAX_EVAL_ENVS = 32  # env copies an evaluation steps in lock-step, at most
+EVALUATION, FINAL = 0, 1  # episodes_seed's purposes: a run's evaluations; a benchmark's final eval
+
+
+def episodes_seed(seed: int, purpose: int, n: int = 0) -> int:
+    """The seed of a batch of episodes (an env seeded ``s`` starts copy ``i`` from ``s + i``).
+
+    numpy's SeedSequence hashes the run's ``seed``, a ``purpose`` and ``n`` (an evaluation's
+    frames) into 32 bits, so the evaluations of one run, and those of runs with adjacent seeds,
+    meet fresh episode starts (consecutive seeds would share all copies but one), and the same
+    (seed, purpose, n) the same starts: a resumed run's evaluations are the uninterrupted run's.
+    """
+    return int(np.random.SeedSequence(seed, spawn_key=(purpose, n)).generate_state(1)[0])
 
 
 def eval_envs(episodes: int) -> int:

@@ -19,7 +19,7 @@ from rlpipe.config import RUN_KEYS, Config
 from rlpipe.console import say
 from rlpipe.envs import make_env
 from rlpipe.envs.backends import resolve_backend
-from rlpipe.episodes import eval_envs
+from rlpipe.episodes import EVALUATION, episodes_seed, eval_envs
 from rlpipe.lineage import continued, extension_line, init_parts, read_parent, start_line
 from rlpipe.loggers import make_logger, run_card
 from rlpipe.models import object_record
@@ -27,8 +27,6 @@ from rlpipe.outcomes import RunResult
 from rlpipe.rundir import RunDir
 from rlpipe.runner import Runner
 from rlpipe.runtime import env_threads, resolve_device, seed_everything
-
-SEED_RANGE = 2**32  # environment seeds derived from cfg.seed wrap around at numpy's limit
 
 
 def train(
@@ -71,10 +69,10 @@ def train(
         cfg = replace(cfg, init_from=parent.spec)  # config.yaml pins its checkpoint
     frames = 0 if start is None else start.frames
     seed_everything(cfg.seed)
-    eval_seed = (cfg.seed + 10_000) % SEED_RANGE  # every evaluation: these episodes' starts
     envs = partial(make_env, cfg.env, threads=env_threads(cfg.threads))
-    with ExitStack() as stack:
-        eval_env = envs(num_envs=eval_envs(cfg.eval_episodes), seed=eval_seed)
+    with ExitStack() as stack:  # the runner seeds every evaluation from cfg.seed and its frames
+        first = episodes_seed(cfg.seed, EVALUATION)
+        eval_env = envs(num_envs=eval_envs(cfg.eval_episodes), seed=first)
         stack.callback(eval_env.close)
         algo = make_algorithm(  # a resumed run restarts its episodes as the checkpoint says
             partial(envs, seed=cfg.seed),
@@ -95,7 +93,7 @@ def train(
             callbacks=make_callbacks(cfg),  # before the logger: a bad video setting writes nothing
             progress=cfg.progress,
             config=cfg,  # config.yaml, and in every checkpoint
-            eval_seed=eval_seed,
+            eval_seed=cfg.seed,
         )
         if start is not None:
             with start.applying():

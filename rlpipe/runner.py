@@ -21,7 +21,7 @@ from rlpipe.budget import check_budget, ended_short, no_evaluation_inside, spent
 from rlpipe.cadence import Cadence, Window
 from rlpipe.config import Config, config_to_dict
 from rlpipe.console import say, warn
-from rlpipe.episodes import EvalResult, EvalStopped, evaluate
+from rlpipe.episodes import EVALUATION, EvalResult, EvalStopped, episodes_seed, evaluate
 from rlpipe.errors import RlpipeError, check
 from rlpipe.outcomes import Diverged, Interrupted, RunResult, not_finite
 from rlpipe.progress import ProgressBar
@@ -75,8 +75,9 @@ class Runner:
 
     The end: ``total_frames`` frames or the algorithm's own ``budget`` of iterations, whichever
     comes first. Shows a progress bar, evaluates the greedy policy every ``eval_every`` frames
-    and at the end (``eval_env`` seeded with ``eval_seed`` before each: every evaluation of a
-    run, resumed or not, meets the same episodes' starts), logs ``train/``, ``eval/`` and
+    and at the end (``eval_env`` seeded before each from ``eval_seed`` and the frames, by
+    :func:`~rlpipe.episodes.episodes_seed`: fresh starts at every evaluation, the same ones in a
+    resumed run), logs ``train/``, ``eval/`` and
     ``time/`` metrics through a TorchRL logger, and checkpoints every ``checkpoint_every``
     frames, at the end (newest ``keep_checkpoints`` kept) and at every best evaluation, through
     ``run_dir`` (a :class:`RunStore`: ``rlpipe.RunDir(path)``), held for the whole run.
@@ -356,7 +357,7 @@ class Runner:
         self._check_finite()
         start = time.perf_counter()
         if self.eval_seed is not None:
-            self.eval_env.set_seed(self.eval_seed)
+            self.eval_env.set_seed(episodes_seed(self.eval_seed, EVALUATION, self.algo.frames))
         try:
             result = evaluate(
                 self.algo.policy, self.eval_env, self.eval_episodes, self._stop_requested

@@ -15,6 +15,7 @@ from types import SimpleNamespace
 
 import pytest
 
+from rlpipe.episodes import FINAL, episodes_seed
 from rlpipe.errors import RlpipeError
 
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
@@ -248,6 +249,9 @@ def test_a_tiny_run_beside_sb3_and_its_read_back(tmp_path) -> None:
         line for line in first.stdout.splitlines() if line.startswith("| `dqn_cartpole` | 100 |")
     )
     assert per_seed.split(" | ")[6] == f"{wall / 60:.1f}"
+    # the final eval meets the seed's own starts (not seed 0's, which tuning runs met too)
+    final = json.loads(next((job / "run" / "evaluation").glob("trained-*.json")).read_text())
+    assert final["seed"] == episodes_seed(100, FINAL) != 0
     # the same runs read back, and with --read-only a seed not in --out is left out, not run
     again = subprocess.run(
         [*command, "--read-only", "--seeds", "100", "101"], capture_output=True, text=True
@@ -279,3 +283,11 @@ def test_a_tiny_run_beside_sb3_and_its_read_back(tmp_path) -> None:
     two = subprocess.run([*command, "--read-only"], capture_output=True, text=True)
     assert two.returncode == 0, two.stderr
     assert re.search(r"runs' starts: M1 [\d.]+–[\d.]+; M2 12\.50–12\.50", two.stdout)
+    assert "‡" not in two.stdout
+    # a record from before evaluations met starts of their own is read back, and marked
+    del sb3["eval_starts"]
+    (job / "sb3.json").write_text(json.dumps(sb3))
+    old = subprocess.run([*command, "--read-only"], capture_output=True, text=True)
+    assert old.returncode == 0, old.stderr
+    assert "| 100 ‡ |" in old.stdout and "‡ evaluated before each run's evaluations" in old.stdout
+    assert "left out" not in old.stdout

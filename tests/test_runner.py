@@ -180,3 +180,49 @@ def test_the_best_evaluation_keeps_its_checkpoint(tmp_path):
     (tmp_path / "checkpoints" / f"best_{10**6:012d}.pt").write_bytes(path.read_bytes())
     train(replace(cfg, total_frames=576), tmp_path)
     assert all(int(p.stem[5:]) <= 576 for p in RunDir(tmp_path).bests())
+
+
+def test_each_run_and_evaluation_meets_its_own_starts():
+    """Adjacent seeds (the held-out 100-109) and successive evaluations share no start; the
+    scheme before, ``seed + 10000``, shared all of 20 copies but one between seeds 100 and 101."""
+    from rlpipe.episodes import EVALUATION, FINAL, episodes_seed
+
+    env_cfg = EnvConfig(id="MountainCar-v0", backend="gymnasium")
+
+    def starts(seed: int) -> set[float]:
+        env = make_env(env_cfg, num_envs=20, seed=seed)
+        try:
+            return set(env.reset()["observation"][:, 0].tolist())  # the car's position
+        finally:
+            env.close()
+
+    seeds = [episodes_seed(s, EVALUATION, f) for s in (100, 101) for f in (10_000, 20_000)]
+    seeds.append(episodes_seed(100, FINAL))
+    assert seeds[0] == episodes_seed(100, EVALUATION, 10_000)  # a resumed run's are the same
+    assert len(set().union(*map(starts, seeds))) == 20 * len(seeds)
+    assert len(starts(10_100) & starts(10_101)) == 19  # what the test guards against
+
+
+def test_the_runner_seeds_every_evaluation_from_its_seed_and_frames(tmp_path):
+    from rlpipe.episodes import EVALUATION, episodes_seed
+
+    torch.manual_seed(0)
+    env_cfg = EnvConfig(id="CartPole-v1")
+    algo = DQN(partial(make_env, env_cfg, seed=7), DQNConfig(frames_per_batch=16))
+    eval_env, used = make_env(env_cfg, seed=1), []
+    seed_env = eval_env.set_seed
+    eval_env.set_seed = lambda seed, **kw: used.append(seed) or seed_env(seed, **kw)
+    runner = Runner(
+        algo,
+        eval_env,
+        RunDir(tmp_path),
+        total_frames=48,
+        eval_every=16,
+        eval_episodes=1,
+        progress=False,
+        eval_seed=7,
+    )
+    runner.run()
+    algo.close()
+    eval_env.close()
+    assert used == [episodes_seed(7, EVALUATION, f) for f in (16, 32, 48)]
