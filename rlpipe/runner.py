@@ -79,7 +79,8 @@ class Runner:
     :func:`~rlpipe.episodes.episodes_seed`: fresh starts at every evaluation, the same ones in a
     resumed run), logs ``train/``, ``eval/`` and ``time/`` metrics through a TorchRL logger,
     and checkpoints every ``checkpoint_every`` frames, at the end (newest ``keep_checkpoints``
-    kept) and at every best evaluation, through ``run_dir`` (a :class:`RunStore`: ``rlpipe.RunDir(path)``), held for the whole run.
+    kept) and at every best evaluation, through ``run_dir`` (a :class:`RunStore`:
+    ``rlpipe.RunDir(path)``), held for the whole run.
     ``callbacks`` (:class:`Callback`) see every evaluation and the end.
 
     ``config`` (a :class:`~rlpipe.config.Config`; left out: the algorithm's own record,
