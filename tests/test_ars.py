@@ -138,17 +138,35 @@ def test_population_call_of_any_layer_equals_the_torch_forward(net):
         assert torch.allclose(net(obs[i]), out["action"][i], atol=1e-5)
 
 
-def test_workers_take_fewer_chunks_of_a_policy_that_costs_more_per_call():
-    """Chunks per worker follow the measured costs: a linear policy (NumPy, microseconds a call)
-    gets many small chunks on Pendulum, a module run through torch.vmap one chunk each."""
-    from rlpipe.algos.ars.chunking import MAX_CHUNKS, chunks_per_worker
+def test_a_module_through_vmap_costs_many_numpy_calls_a_call():
+    """The costs chunking reads: a linear policy (NumPy, microseconds a call) costs far less a
+    population call than a module run through torch.vmap (measured here: about 15 times less;
+    asserted: over 3, so that a busy machine cannot flip it)."""
+    from rlpipe.algos.ars.chunking import measured_costs
 
     factory = partial(make_env, PENDULUM, vectorization="sync")
     linear, _ = make_ars_policy(make_env(PENDULUM), ARSConfig())
     custom = TensorDictModule(_Custom(), in_keys=["observation"], out_keys=["action"])
-    fine = chunks_per_worker(linear, factory, population=32, workers=2, seed=0)
-    coarse = chunks_per_worker(custom, factory, population=32, workers=2, seed=0)
-    assert fine > coarse == 1 and fine <= MAX_CHUNKS
+    numpy_call, env_step = measured_costs(linear, factory, members=2, seed=0)
+    vmap_call, _ = measured_costs(custom, factory, members=2, seed=0)
+    assert 0 < numpy_call and 0 < env_step and vmap_call > 3 * numpy_call
+
+
+@pytest.mark.parametrize(
+    ("call", "env_step", "chunks"),
+    [(2e-5, 1e-4, 8), (3e-4, 1e-4, 1), (1e-4, 1e-4, 4), (1e-2, 1e-4, 1), (1e-7, 1e-4, 8)],
+)
+def test_workers_take_fewer_chunks_of_a_policy_that_costs_more_per_call(
+    monkeypatch, call, env_step, chunks
+):
+    """Chunks per worker follow the costs: the most (up to MAX_CHUNKS, at least one) whose
+    calls stay within OVERHEAD of a worker's env steps (32 members on 2 workers: 16 member-steps
+    a worker, so 0.25 * 16 = 4 env steps' worth of calls)."""
+    from rlpipe.algos.ars import chunking
+
+    monkeypatch.setattr(chunking, "measured_costs", lambda *args: (call, env_step))
+    got = chunking.chunks_per_worker(None, None, population=32, workers=2, seed=0)
+    assert got == chunks and 1 <= got <= chunking.MAX_CHUNKS
 
 
 def test_pendulum_preset_is_a_biased_mlp_run_for_its_whole_frame_budget():
