@@ -26,12 +26,14 @@ from rlpipe.config import Config
 from rlpipe.stats import iqm, pooled_iqm, pooled_iqm_band
 
 DASH = "–"
-SHARED = "‡"  # a seed (or a preset with such seeds) evaluated on the starts every seed met
+SHARED = "‡"  # beside a side's figures evaluated on the starts every seed met
 SHARED_NOTE = (
-    f"{SHARED} evaluated before each run's evaluations met starts of their own: every held-out "
+    f"{SHARED} beside a seed's or preset's seeds (rlpipe) or its SB3 solved cell: evaluated "
+    "before each run's evaluations met starts of their own: every held-out "
     "seed's periodic evals met nearly the same episode starts (seed + 10000 on consecutive "
     "seeds), and every final eval seed 0's 100, which the tuning runs' final evals met too; "
-    "such records are kept until run again"
+    'such records are kept until run again; a ratio marked "runs on different days" '
+    "compares a re-run side with the other's earlier runs on the same machine"
 )
 SPEED_TARGET = 0.5  # the issue's aim: rlpipe's time to the target at most half SB3's
 
@@ -108,17 +110,19 @@ def ratio(ours: Side, theirs: Side, value: Callable[[Run], float | None]) -> tup
     shows it, and unrounded (nan: none)."""
     mine = {r.seed: r for r in ours.runs}
     pairs = [(mine[r.seed], r) for r in theirs.runs if r.seed in mine]
-    ratios, elsewhere = [], 0
+    ratios, elsewhere, days = [], 0, False
     for a, b in pairs:
         if (va := value(a)) is None or not (vb := value(b)):
             continue
-        if split_day(a.machine)[1] != split_day(b.machine)[1]:
+        (day_a, where_a), (day_b, where_b) = split_day(a.machine), split_day(b.machine)
+        if where_a != where_b:
             elsewhere += 1
             continue
         ratios.append(va / vb)
+        days |= day_a != day_b
     if ratios:
         median = statistics.median(ratios)
-        return format(median, ".2f"), median
+        return format(median, ".2f") + (" (runs on different days)" if days else ""), median
     return (f"{DASH} (on other machines)" if elsewhere else DASH), math.nan
 
 
@@ -138,21 +142,26 @@ def summary_row(preset: Preset, cfg: Config, ours: Side, theirs: Side, where: st
     frames, seconds = ours.to_target()
     cells = [f"`{preset.experiment}`", preset.env, budget(cfg, ours.runs), f"{preset.target:g}"]
     solved = ours.solved() + (" (short of 8/10: see its note)" if preset.short_of else "")
-    shared = any(r.shared_starts for r in ours.runs + theirs.runs)
-    seeds = seed_text([r.seed for r in ours.runs]) + (f" {SHARED}" if shared else "")
+    seeds = seed_text([r.seed for r in ours.runs]) + _shared(ours.runs)
     cells += [seeds, solved, iqm_cell(ours.finals)]
     cells += [frames, seconds]
     if not theirs.runs:
         side = preset.no_sb3 or ("not run (--sb3)" if ours.runs else DASH)  # none yet: neither
         cells += [side, DASH, DASH, DASH, DASH]
     else:
-        cells += [theirs.solved(), iqm_cell(theirs.finals), theirs.to_target()[1]]
+        cells += [theirs.solved() + _shared(theirs.runs), iqm_cell(theirs.finals)]
+        cells.append(theirs.to_target()[1])
         to_target, median = ratio(ours, theirs, lambda r: seconds_to(r, preset.target))
         if median > SPEED_TARGET:  # unrounded: 0.503 shows as 0.50, yet misses the aim
             to_target += f" (above {SPEED_TARGET:g}" + (": see its note)" if preset.slow else ")")
         cells.append(to_target)
         cells.append(ratio(ours, theirs, lambda r: r.train_seconds)[0])
     return [*cells, where]
+
+
+def _shared(runs: list[Run]) -> str:
+    """The mark for figures of which any were evaluated on the shared starts, else nothing."""
+    return f" {SHARED}" if any(r.shared_starts for r in runs) else ""
 
 
 def _hit_text(run: Run, target: float) -> str:
@@ -170,7 +179,7 @@ def _seed_cells(run: Run | None, target: float) -> list[str]:
         return [DASH] * 4
     if run.error:
         return [f"failed: {run.error}", DASH, DASH, DASH]
-    mark = "✓" if run.solved(target) else "✗"
+    mark = ("✓" if run.solved(target) else "✗") + _shared([run])
     return [mark, _hit_text(run, target), _num(run.last_three), _num(run.final)]
 
 
@@ -182,9 +191,7 @@ def detail_rows(preset: Preset, ours: Side, theirs: Side, label: dict[str, str])
     for r in ours.runs:
         wall = DASH if r.wall is None else f"{r.wall / 60:.1f}"
         sb3 = by_seed.get(r.seed)
-        shared = r.shared_starts or (sb3 is not None and sb3.shared_starts)
-        seed = f"{r.seed}" + (f" {SHARED}" if shared else "")
-        cells = [f"`{preset.experiment}`", seed, *_seed_cells(r, preset.target), wall]
+        cells = [f"`{preset.experiment}`", f"{r.seed}", *_seed_cells(r, preset.target), wall]
         cells += _seed_cells(sb3, preset.target)
         where = label.get(r.machine, DASH)
         if sb3 is not None and label.get(sb3.machine, DASH) != where:

@@ -106,6 +106,22 @@ def test_a_seed_row_names_sb3_s_machine_where_it_ran_elsewhere(bench) -> None:
     assert bench.report.ratio(*sides, lambda r: r.evals[0][2])[0] == "– (on other machines)"
 
 
+def test_a_ratio_over_runs_of_different_days_says_so(bench) -> None:
+    """A side re-run alone (its records replaced, the other's kept) is still compared on one
+    machine, but the ratio is no longer from one run: the cell says so."""
+    preset = bench.presets_table.PRESETS["dqn_cartpole"]
+    ours, theirs = [run(bench, 100, [500.0], 500.0)], [run(bench, 100, [500.0], 500.0, "SB3")]
+    ours[0].evals, theirs[0].evals = [(10_000, 500.0, 2.0)], [(10_000, 500.0, 8.0)]
+    sides = (bench.report.Side(preset, ours), bench.report.Side(preset, theirs))
+    ours[0].machine = theirs[0].machine = "2026-11-26 · box, 2 cores"
+    assert bench.report.ratio(*sides, lambda r: r.evals[0][2])[0] == "0.25"
+    ours[0].machine = "2026-11-28 · box, 2 cores"
+    assert bench.report.ratio(*sides, lambda r: r.evals[0][2]) == (
+        "0.25 (runs on different days)",
+        0.25,
+    )
+
+
 def test_the_row_of_a_preset(bench) -> None:
     preset = bench.presets_table.PRESETS["dqn_cartpole"]
     report = bench.report
@@ -286,10 +302,18 @@ def test_a_tiny_run_beside_sb3_and_its_read_back(tmp_path) -> None:
     assert two.returncode == 0, two.stderr
     assert re.search(r"runs' starts: M1 [\d.]+–[\d.]+; M2 12\.50–12\.50", two.stdout)
     assert "‡" not in two.stdout
-    # a record from before evaluations met starts of their own is read back, and marked
+    # a record from before evaluations met starts of their own is read back, and its side's
+    # figures are marked: SB3's solved cells here, rlpipe's seeds below
     del sb3["eval_starts"]
     (job / "sb3.json").write_text(json.dumps(sb3))
     old = subprocess.run([*command, "--read-only"], capture_output=True, text=True)
     assert old.returncode == 0, old.stderr
-    assert "| 100 ‡ |" in old.stdout and "‡ evaluated before each run's evaluations" in old.stdout
-    assert "left out" not in old.stdout
+    note = "‡ beside a seed's or preset's seeds (rlpipe) or its SB3 solved cell: evaluated before"
+    assert "| 100 |" in old.stdout and "| 100 ‡ |" not in old.stdout and note in old.stdout
+    assert re.search(r"\| 0/1 ‡ \||\| 1/1 ‡ \|", old.stdout)  # SB3 solved, in the main table
+    assert re.search(r"\| [✓✗] ‡ \|", old.stdout) and "left out" not in old.stdout
+    saved.pop("eval_starts")
+    (job / "rlpipe.json").write_text(json.dumps(saved))
+    older = subprocess.run([*command, "--read-only"], capture_output=True, text=True)
+    assert older.returncode == 0, older.stderr
+    assert "| 100 ‡ |" in older.stdout and len(re.findall(r"\| [✓✗] ‡ \|", older.stdout)) == 2
