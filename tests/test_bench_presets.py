@@ -175,12 +175,16 @@ def test_a_preset_short_of_8_of_10_says_so_in_its_row_and_note(bench) -> None:
         zip(report.HEADERS, report.summary_row(short, cfg, ours, report.Side(short, []), "M1"))
     )
     assert row["solved"] == "1/2 (short of 8/10: see its note)"
-    # where its runs reach 8 of 10 (another backend's, say), the row does not say it is short
+    none = report.Side(short, [])
+    assert report.note(short, cfg, ours, none).endswith(
+        "**short of 8 of 10 held-out seeds**: tried A and B"
+    )
+    assert "short of" not in report.note(preset, cfg, ours, none)
+    # where its runs reach 8 of 10 (another backend's, say), neither row nor note says short
     ours.runs.pop()
-    row = report.summary_row(short, cfg, ours, report.Side(short, []), "M1")
+    row = report.summary_row(short, cfg, ours, none, "M1")
     assert dict(zip(report.HEADERS, row))["solved"] == "1/1"
-    assert report.note(short, cfg).endswith("**short of 8 of 10 held-out seeds**: tried A and B")
-    assert "short of" not in report.note(preset, cfg)
+    assert "short of" not in report.note(short, cfg, ours, none)
 
 
 def test_a_time_to_the_target_above_half_sb3s_is_flagged_and_its_note_says_why(bench) -> None:
@@ -195,12 +199,18 @@ def test_a_time_to_the_target_above_half_sb3s_is_flagged_and_its_note_says_why(b
         row = report.summary_row(p, cfg, report.Side(p, ours), report.Side(p, theirs), "M1")
         return dict(zip(report.HEADERS, row))["rlpipe/SB3 s to target"]
 
+    def note(p) -> str:
+        return report.note(p, cfg, report.Side(p, ours), report.Side(p, theirs))
+
     assert cell(preset) == "0.80 (above 0.5)"
     assert cell(slow) == "0.80 (above 0.5: see its note)"
-    assert report.note(slow, cfg).endswith("**time to the target above 0.5× SB3's**: tried C")
-    assert "above" not in report.note(preset, cfg)
+    assert note(slow).endswith("**time to the target above 0.5× SB3's**: tried C")
+    assert "above" not in note(preset)
     ours[0] = run(bench, 100, [100, 500, 500, 500], 500.0, seconds=2.515)  # 5.03 s to 500
     assert cell(preset) == "0.50 (above 0.5)"  # 0.503: above, though it rounds to 0.50
+    assert note(slow).endswith("tried C")
+    ours[0] = run(bench, 100, [100, 500, 500, 500], 500.0, seconds=2.0)  # 4 s: 0.40
+    assert cell(slow) == "0.40" and "above" not in note(slow)  # the note explains no more
 
 
 def test_a_record_from_before_a_config_field_existed_still_stands_at_its_default(bench) -> None:
