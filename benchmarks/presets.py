@@ -198,9 +198,10 @@ def section(
     for r in runs:
         if r.load:
             starts.setdefault(labels[r.machine], []).append(r.load[0])
+    ran = f"{args.jobs} run(s) at once; " if reused < len(runs) else ""  # none ran: no jobs
     facts = [
         seeds,
-        f"{args.jobs} run(s) at once; {wall / 60:.1f} min in all"
+        f"{ran}{wall / 60:.1f} min in all"
         + (
             f"; {reused} of {len(runs)} runs read back from earlier calls' `--out`"
             if reused

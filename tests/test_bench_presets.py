@@ -291,6 +291,7 @@ def test_a_tiny_run_beside_sb3_and_its_read_back(tmp_path) -> None:
     )
     assert again.returncode == 0, again.stderr
     assert "2 of 2 runs read back" in again.stdout and row in again.stdout
+    assert "2 run(s) at once" in first.stdout and "run(s) at once" not in again.stdout
     assert "1-min load average at the runs' starts: M1 " in again.stdout
     left_out = "left out (`--read-only`): dqn_cartpole (rlpipe 101, SB3 101)"
     assert left_out in again.stdout
