@@ -130,6 +130,11 @@ def ratio(ours: Side, theirs: Side, value: Callable[[Run], float | None]) -> tup
     return (f"{DASH} (on other machines)" if elsewhere else DASH), math.nan
 
 
+def target_ratio(preset: Preset, ours: Side, theirs: Side) -> tuple[str, float]:
+    """``ratio`` of the training seconds to the preset's target."""
+    return ratio(ours, theirs, lambda r: seconds_to(r, preset.target))
+
+
 def budget(cfg: Config, runs: list[Run]) -> str:
     """The preset's frame budget (or its own: ARS iterations, REINFORCE epochs) and what ran."""
     ends = sorted(r.evals[-1][0] for r in runs if r.evals)
@@ -155,7 +160,7 @@ def summary_row(preset: Preset, cfg: Config, ours: Side, theirs: Side, where: st
     else:
         cells += [theirs.solved() + _shared(theirs.runs), iqm_cell(theirs.finals)]
         cells.append(theirs.to_target()[1])
-        to_target, median = ratio(ours, theirs, lambda r: seconds_to(r, preset.target))
+        to_target, median = target_ratio(preset, ours, theirs)
         if median > SPEED_TARGET:  # unrounded: 0.503 shows as 0.50, yet misses the aim
             to_target += f" (above {SPEED_TARGET:g}" + (": see its note)" if preset.slow else ")")
         cells.append(to_target)
@@ -169,9 +174,9 @@ def short(preset: Preset, ours: Side) -> bool:
 
 
 def slow(preset: Preset, ours: Side, theirs: Side) -> bool:
-    """Whether the row's time to the target is above half SB3's and its note says why."""
-    median = ratio(ours, theirs, lambda r: seconds_to(r, preset.target))[1]
-    return bool(preset.slow) and median > SPEED_TARGET  # nan (no pairs): False
+    """Whether the row's time to the target is above half SB3's (not so without pairs: nan)
+    and its note says why."""
+    return bool(preset.slow) and target_ratio(preset, ours, theirs)[1] > SPEED_TARGET
 
 
 def _shared(runs: list[Run]) -> str:
