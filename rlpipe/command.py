@@ -1,6 +1,7 @@
 """The train command, ``python -m rlpipe [overrides]``: one run (or a ``-m`` sweep) from the Hydra
-config, from the arguments to the summary line. Every config error is answered before torch
-loads (the training pipeline is imported once the config has passed its checks).
+config, from the arguments to the summary line. Config errors and a bad run dir (its layout, its
+config.yaml) are answered before torch loads (the training pipeline is imported once they have
+passed their checks); the env's own (an unknown id, actions the algorithm cannot take) after.
 
 Read top-down: :func:`main` prepares the arguments and hands them to Hydra, which composes the
 config and calls :func:`task` once per run (or sweep job)."""
@@ -195,6 +196,7 @@ def task(cfg: DictConfig) -> float | None:
         notice = tuned_notice(hydra_cfg.runtime.choices) or trap_notice(config.algo, config.env.id)
         if notice:
             say(notice)
+        RunDir(config.resume or run_dir).precheck(required=bool(config.resume))
         from rlpipe.pipeline import train
 
         if "BasicLauncher" not in hydra_cfg.launcher.get("_target_", "BasicLauncher"):

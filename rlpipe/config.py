@@ -174,7 +174,7 @@ class Config:
     )  # AlgoConfig  # an AlgoConfig (DQNConfig, ARSConfig, ...)
     logger: LoggerConfig = field(default_factory=LoggerConfig)
     seed: int = checked(0, "seed")
-    device: str = "auto"  # auto: cuda when available, else cpu
+    device: str = checked("auto", "device")  # auto: cuda when available, else cpu
     total_frames: int | None = None  # null: algo.total_frames
     eval_every: int | None = None  # null: algo.eval_every
     eval_episodes: int | None = None  # null: algo.eval_episodes

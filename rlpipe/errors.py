@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Callable, Iterable
 from typing import Any
 
@@ -34,6 +35,11 @@ RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
     "sizes": (lambda v: all(h >= 1 for h in v), "must be positive"),
     "optional_at_least_one": (lambda v: v is None or v >= 1, "must be >= 1 or null"),
     "seed": (lambda v: 0 <= v <= 2**32 - 1, "must be in [0, 2**32 - 1]"),
+    # checked with the config, before torch loads: a typo fails at once, not after the imports
+    "device": (
+        lambda v: isinstance(v, str) and re.fullmatch(r"auto|cpu|cuda(:\d+)?", v) is not None,
+        "must be auto, cpu, cuda or cuda:N",
+    ),
 }
 
 

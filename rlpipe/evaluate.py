@@ -35,7 +35,7 @@ from rlpipe.cli import compose_config, run_entry_point
 from rlpipe.config import ENV_BACKENDS, EnvConfig
 from rlpipe.envs import envpool_env, make_env
 from rlpipe.episodes import EvalResult, eval_envs, evaluate
-from rlpipe.errors import check
+from rlpipe.errors import check, check_fields
 from rlpipe.files import check_writable, write_atomic
 from rlpipe.heuristic import heuristic_policy, naive_policy, random_policy
 from rlpipe.loggers import require_extra
@@ -80,6 +80,7 @@ class EvaluateConfig:
     def __post_init__(self) -> None:
         check(self.episodes >= 1, f"episodes must be >= 1, got {self.episodes}")
         check(self.video_episodes >= 1, f"video_episodes must be >= 1, got {self.video_episodes}")
+        check_fields(self, "", device=("device",))
         check(
             self.backend in (None, *ENV_BACKENDS),
             f"backend must be one of {', '.join(ENV_BACKENDS)} or null (the run's); "

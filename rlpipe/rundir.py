@@ -208,6 +208,15 @@ class RunDir(RunLayout):
         return " ".join(["python -m rlpipe", *self.overrides()])
 
     # -- training
+    def precheck(self, *, required: bool) -> None:
+        """What :meth:`open` and :meth:`read_config` refuse without torch: the dir's layout and,
+        where it holds a run (or ``required``: ``resume=``), its config. The command line calls
+        it before torch loads: a bad run dir fails at once, not after the imports."""
+        if required or self.is_run():
+            self.read_config(allow_code=True)
+        elif os.path.lexists(self.path):
+            self.check_layout()
+
     def open(self, cfg: Config, *, required: bool) -> Checkpoint | None:
         """Check that ``cfg`` is the run this dir holds, if it holds one, and return the
         checkpoint to resume from (None: start at zero). Writes nothing.

@@ -16,13 +16,11 @@ TORCH_THREADS = torch.get_num_threads()
 
 
 def resolve_device(name: str) -> torch.device:
-    """``auto`` -> cuda when available, else cpu; anything else must be a valid torch device."""
+    """``auto`` -> cuda when available, else cpu; else ``cpu``, ``cuda`` or ``cuda:N`` (the
+    configs check the name: see the ``device`` rule of :data:`rlpipe.errors.RULES`)."""
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        device = torch.device(name)
-    except RuntimeError as err:
-        raise RlpipeError(f"device must be auto, cpu, cuda or cuda:N; got {name!r}") from err
+    device = torch.device(name)
     if device.type == "cuda" and not torch.cuda.is_available():
         raise RlpipeError(f"device={name} asked for, but no CUDA device is available; use auto")
     return device

@@ -129,6 +129,43 @@ BAD_INPUTS = [
 ]
 
 
+@pytest.mark.parametrize(
+    "case, message",
+    [
+        ("device=tpu", "device must be auto, cpu, cuda or cuda:N, got tpu"),
+        ("resume-garbage", "config.yaml is damaged"),
+        ("resume-link", "is a symbolic link"),
+        ("checkpoints-a-file", "where the run keeps a directory"),
+    ],
+)
+def test_config_and_run_dir_errors_come_before_torch_loads(tmp_path, case, message):
+    """A typo in a value or a bad run dir fails at once: torch never loads."""
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.yaml").write_text("garbage: [")
+    (tmp_path / "link").symlink_to(run)
+    (tmp_path / "fresh").mkdir()  # no run yet, a file where its checkpoints go
+    (tmp_path / "fresh" / "checkpoints").write_text("")
+    args = {
+        "device=tpu": ["device=tpu", f"hydra.run.dir={tmp_path / 'new'}"],
+        "resume-garbage": [f"resume={run}"],
+        "resume-link": [f"resume={tmp_path / 'link'}"],
+        "checkpoints-a-file": [f"hydra.run.dir={tmp_path / 'fresh'}"],
+    }[case]
+    code = (
+        "import sys\nfrom rlpipe.command import main\n"
+        f"sys.argv = ['rlpipe', *{args!r}]\n"
+        "try:\n    main()\nexcept SystemExit as e:\n    assert e.code == 2, e.code\n"
+        "assert 'torch' not in sys.modules, 'torch loaded'\n"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=120
+    )
+    assert proc.returncode == 0, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("rlpipe: error: ") and message in lines[0], lines
+
+
 @pytest.mark.parametrize("args, message", BAD_INPUTS, ids=[" ".join(a) for a, _ in BAD_INPUTS])
 def test_bad_input_is_one_clear_line(rlpipe_cli, tmp_path, args, message):
     proc = rlpipe_cli("progress=false", *args)

@@ -146,6 +146,9 @@ def test_added_keys_are_refused(override):
         ("threads=-1", "threads must be auto or a number from 0"),
         (f"threads={(os.cpu_count() or 1) + 1}", "threads must be auto or a number from 0"),
         ("threads=many", "threads must be auto or a number from 0"),
+        ("device=tpu", "device must be auto, cpu, cuda or cuda:N, got tpu"),
+        ("device=cuda:x", "device must be auto, cpu, cuda or cuda:N"),
+        ("device=cuda1", "device must be auto, cpu, cuda or cuda:N"),
     ],
 )
 def test_bad_values_fail_with_a_named_key(override, message):

@@ -154,6 +154,7 @@ def test_latest_run_best_checkpoint_live_window_and_a_longer_video(tmp_path: Pat
         (["run_dir=RUN", "colour=red"], "colour"),
         (["run_dir=RUN", "+colour=red"], "unknown key 'colour'"),
         (["run_dir=RUN", "episodes=0"], "episodes must be >= 1"),
+        (["run_dir=RUN", "device=gpu"], "device must be auto, cpu, cuda or cuda:N, got gpu"),
         (
             ["run_dir=RUN", "checkpoint=150"],
             "has no checkpoint at 150 frames (checkpoints/ckpt_000000000150.pt); it has 200",

@@ -27,8 +27,10 @@ from rlpipe.pipeline import load_run, train
 from rlpipe.rundir import RunDir
 from rlpipe.runner import Diverged, Runner
 
-# DQN on CartPole: 2 envs, 20 frames per iteration, a checkpoint every 200 frames
+# DQN on CartPole with its own defaults (not the tuned preset's 32 updates of 256 per batch): 2
+# envs, 20 frames per iteration, a checkpoint every 200 frames
 DQN_ARGS = [
+    "~tuned",
     "progress=false",
     "env.num_envs=2",
     "algo.frames_per_batch=20",

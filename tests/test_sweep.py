@@ -281,8 +281,8 @@ def test_a_signal_stops_the_whole_sweep_and_resume_sweep_continues_it(tmp_path):
     args = [
         "-m",
         "seed=0,1,2",
-        "total_frames=6000",
-        "eval_every=3000",
+        "total_frames=3200",
+        "eval_every=1600",
         "eval_episodes=2",
         "progress=false",
         f"hydra.sweep.dir={sweep}",
@@ -317,9 +317,9 @@ def test_a_signal_stops_the_whole_sweep_and_resume_sweep_continues_it(tmp_path):
     assert (sweep / "0" / "summary.json").read_text() == finished  # reported, not retrained
     rows = list(csv.DictReader((sweep / "summary.csv").open()))
     assert [(r["job"], r["status"], r["frames"]) for r in rows] == [
-        ("0", "ok", "6000"),
-        ("1", "ok", "6000"),
-        ("2", "ok", "6000"),
+        ("0", "ok", "3200"),
+        ("1", "ok", "3200"),
+        ("2", "ok", "3200"),
     ]
     assert not (sweep / "1" / "interrupted.json").exists()
 
