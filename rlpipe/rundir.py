@@ -109,10 +109,10 @@ class RunDir(RunLayout):
             str(OmegaConf.select(cfg, key, default="?")) for key in ("env.id", "algo.name")
         )
 
-    def check_same_run(self, cfg: Config) -> None:
-        """Unless ``cfg`` is the run this dir holds (same fingerprint), :class:`RunDirConflict`
-        naming the keys that differ."""
-        ours, theirs = fingerprint(cfg), fingerprint(self.read_config(allow_code=True))
+    def check_same_run(self, cfg: Config, recorded: Config) -> None:
+        """Unless ``cfg`` is the run this dir holds (``recorded``, its config: same fingerprint),
+        :class:`RunDirConflict` naming the keys that differ."""
+        ours, theirs = fingerprint(cfg), fingerprint(recorded)
         if ours != theirs:
             raise RunDirConflict(
                 f"{self.path} belongs to another run: it differs in "
@@ -208,14 +208,15 @@ class RunDir(RunLayout):
         return " ".join(["python -m rlpipe", *self.overrides()])
 
     # -- training
-    def precheck(self, *, required: bool) -> None:
-        """What :meth:`open` and :meth:`read_config` refuse without torch: the dir's layout and,
-        where it holds a run (or ``required``: ``resume=``), its config. The command line calls
-        it before torch loads: a bad run dir fails at once, not after the imports."""
+    def precheck(self, *, required: bool) -> Config | None:
+        """:meth:`open`'s first, torch-free step: the dir's layout and, where it holds a run (or
+        ``required``: ``resume=``), its config, returned (None: no run here yet). The command
+        line calls it before torch loads: a bad run dir fails at once, not after the imports."""
         if required or self.is_run():
-            self.read_config(allow_code=True)
-        elif os.path.lexists(self.path):
+            return self.read_config(allow_code=True)
+        if os.path.lexists(self.path):
             self.check_layout()
+        return None
 
     def open(self, cfg: Config, *, required: bool) -> Checkpoint | None:
         """Check that ``cfg`` is the run this dir holds, if it holds one, and return the
@@ -224,10 +225,9 @@ class RunDir(RunLayout):
         ``required`` (``resume=<dir>``): a dir without any checkpoint is an error. Damaged
         checkpoints are skipped with a warning; one written by another run is refused.
         """
-        if os.path.lexists(self.path):
-            self.check_layout()
-        if required or self.is_run():
-            self.check_same_run(cfg)
+        recorded = self.precheck(required=required)
+        if recorded is not None:
+            self.check_same_run(cfg, recorded)
         self._opened = self._checkpoint_files()
         if not self.checkpoints():
             check(not required, f"{self.path} has no checkpoint to resume from; start a new run")
