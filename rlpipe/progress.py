@@ -17,7 +17,8 @@ class ProgressBar:
 
     While it counts frames and the algorithm also has a budget of iterations, its total (and so
     its ETA) is where that budget will end at the frames per iteration so far, if that comes
-    before ``total_frames``.
+    before ``total_frames``. A last whole batch past ``total_frames`` raises the total to the
+    frames run, so the bar ends at 100% rather than losing its total.
     """
 
     def __init__(self, algo: Algorithm, total_frames: int | None, *, enabled: bool) -> None:
@@ -45,6 +46,8 @@ class ProgressBar:
             projected = math.ceil(algo.frames / algo.iterations * algo.budget)
             self.bar.total = min(self.total_frames, max(projected, algo.frames))
         count = self.count()
+        if self.bar.total is not None and count > self.bar.total:
+            self.bar.total = count
         self.bar.update(count - self.shown)
         self.shown = count
 

@@ -135,7 +135,8 @@ def test_a_runner_without_a_known_config_writes_none(tmp_path):
 
 def test_the_bar_ends_where_the_binding_budget_ends():
     """ARS with algo.iterations=3 and a large total_frames: the bar's total (and ETA) follow
-    the 3 iterations, at the frames per iteration so far; the bar shows one rate."""
+    the 3 iterations, at the frames per iteration so far; the bar shows one rate; a last
+    batch past total_frames raises the total rather than overrunning it."""
     from types import SimpleNamespace
 
     from rlpipe.progress import ProgressBar, postfix
@@ -148,6 +149,9 @@ def test_the_bar_ends_where_the_binding_budget_ends():
     algo.budget = 10**6  # the frames bind first
     bar.advance()
     assert bar.bar.total == 60_000_000
+    algo.frames = 60_000_512  # a last whole batch past total_frames
+    bar.advance()
+    assert (bar.shown, bar.bar.total) == (60_000_512, 60_000_512)
     assert postfix(float("nan"), None) == {}  # no "fps" beside tqdm's rate, no ep_return=nan
     assert postfix(12.0, None) == {"ep_return": "12.0"}
 
