@@ -89,6 +89,15 @@ def start_module(
     )
 
 
+def assert_auto_chose_envpool(stdout: str) -> None:
+    """A run's console says ``env.backend=auto`` chose EnvPool (gymnasium where EnvPool is
+    missing): for the envs EnvPool runs as gymnasium does."""
+    from rlpipe.envs.backends import envpool_version
+
+    backend = "envpool" if envpool_version() else "gymnasium"
+    assert f"rlpipe: env backend {backend} (auto" in stdout, stdout
+
+
 def needs_extra(module: str, extra: str) -> Any:
     """``module``, imported; where it is missing the test is skipped with the command that
     installs the rlpipe extra bringing it."""
@@ -137,9 +146,10 @@ def image_env_id() -> str:
     return env_id
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def finished_run(tmp_path_factory) -> Path:
-    """A finished tiny DQN run (checkpoints at 100 and 200 frames), made once per module."""
+    """A finished tiny DQN run (checkpoints at 100 and 200 frames), made once per test process:
+    read it, never change it (``run_copy`` is a copy to change)."""
     run_dir = tmp_path_factory.mktemp("finished") / "run"
     result = run_module("rlpipe", *BASE, f"hydra.run.dir={run_dir}", cwd=run_dir.parent)
     assert result.returncode == 0, result.stderr
@@ -150,7 +160,7 @@ def finished_run(tmp_path_factory) -> Path:
     return run_dir
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def reference(tmp_path_factory):
     """The fault-injection suite's uninterrupted run per algorithm (tests/fault_harness.py)."""
     from fault_harness import reference_runs  # imports this module: not at the top

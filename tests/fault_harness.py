@@ -332,7 +332,7 @@ def cut_rows(data: bytes, frames: int) -> bytes:
 
 def reference_runs(tmp_path_factory) -> Callable[[str], Reference]:
     """The reference of an algorithm's kill-matrix config: one uninterrupted run each (made on
-    first use); conftest's module-scoped ``reference`` fixture."""
+    first use); conftest's session-scoped ``reference`` fixture."""
     cache: dict[str, Reference] = {}
 
     def get(algo: str) -> Reference:

@@ -56,7 +56,10 @@ def run_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return run_dir
 
 
-def test_evaluate_trained_run(run_dir: Path, tmp_path: Path) -> None:
+def test_evaluate_trained_run(
+    run_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The command line (one subprocess), then ``checkpoint=200`` in-process."""
     proc = run_module("rlpipe.evaluate", f"run_dir={run_dir}", "episodes=3", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
     assert "±" in proc.stdout and "over 3 episodes" in proc.stdout
@@ -68,8 +71,8 @@ def test_evaluate_trained_run(run_dir: Path, tmp_path: Path) -> None:
     assert summary["return_min"] <= summary["return_mean"] <= summary["return_max"]
     assert all(r >= 1 for r in summary["returns"])
     assert summary["video"] is None
-    at = run_module("rlpipe.evaluate", f"run_dir={run_dir}", "checkpoint=200", cwd=tmp_path)
-    assert at.returncode == 0 and "trained (ckpt_000000000200)" in at.stdout, at.stderr
+    main([f"run_dir={run_dir}", "checkpoint=200", "episodes=1"])
+    assert "trained (ckpt_000000000200)" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize(
@@ -80,45 +83,34 @@ def test_evaluate_trained_run(run_dir: Path, tmp_path: Path) -> None:
         ("heuristic", "bipedal", "BipedalWalker-v3"),
     ],
 )
-def test_evaluate_baselines(tmp_path: Path, policy: str, env: str, env_id: str) -> None:
+def test_evaluate_baselines(
+    tmp_path: Path, policy: str, env: str, env_id: str, capsys: pytest.CaptureFixture[str]
+) -> None:
     out = tmp_path / f"{policy}.json"
-    proc = run_module(
-        "rlpipe.evaluate",
-        f"policy={policy}",
-        f"env={env}",
-        "episodes=2",
-        f"out={out}",
-        cwd=tmp_path,
-    )
-    assert proc.returncode == 0, proc.stderr
-    assert proc.stdout.startswith(f"rlpipe: {policy} on {env_id}: return")
+    main([f"policy={policy}", f"env={env}", "episodes=2", f"out={out}"])
+    assert capsys.readouterr().out.startswith(f"rlpipe: {policy} on {env_id}: return")
     summary = json.loads(out.read_text())
     assert summary["policy"] == policy and summary["checkpoint"] is None
     assert len(summary["returns"]) == 2
 
 
 @NEEDS_VIDEO
-def test_evaluate_video(run_dir: Path, tmp_path: Path) -> None:
+def test_evaluate_video(run_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "greedy.json"
-    proc = run_module(
-        "rlpipe.evaluate",
-        f"run_dir={run_dir}",
-        "episodes=1",
-        "video=true",
-        f"out={out}",
-        cwd=tmp_path,
-    )
-    assert proc.returncode == 0, proc.stderr
+    main([f"run_dir={run_dir}", "episodes=1", "video=true", f"out={out}"])
     video = tmp_path / "greedy.mp4"
     assert video.is_file() and video.stat().st_size > 1000
     assert json.loads(out.read_text())["video"] == str(video)
-    assert "video" in proc.stdout
+    assert "video" in capsys.readouterr().out
 
 
 @NEEDS_VIDEO
-def test_latest_run_best_checkpoint_live_window_and_a_longer_video(tmp_path: Path) -> None:
+def test_latest_run_best_checkpoint_live_window_and_a_longer_video(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """Enjoy: run_dir=latest (the newest run under outputs/), checkpoint=best, render=human (a
-    window; SDL's dummy driver here) and video_episodes=N (N episodes in one mp4)."""
+    window; SDL's dummy driver here, in a subprocess) and video_episodes=N (N episodes in one
+    mp4, in-process)."""
     for seed in (1, 2):  # the second run is the latest
         train(
             Config(seed=seed, total_frames=300, eval_every=100, eval_episodes=2, progress=False),
@@ -130,8 +122,8 @@ def test_latest_run_best_checkpoint_live_window_and_a_longer_video(tmp_path: Pat
     assert proc.returncode == 0, proc.stderr
     (summary,) = [json.loads(p.read_text()) for p in (latest / "evaluation").glob("*.json")]
     assert summary["run_dir"] == "outputs/day/run2" and summary["checkpoint"].startswith("best_")
-    proc = run_module("rlpipe.evaluate", *args, "video=true", "video_episodes=3", cwd=tmp_path)
-    assert proc.returncode == 0, proc.stderr
+    monkeypatch.chdir(tmp_path)
+    main([*args, "video=true", "video_episodes=3"])
     summary = json.loads(next((latest / "evaluation").glob("*.json")).read_text())
     assert len(summary["video_frames"]) == 3 and Path(tmp_path / summary["video"]).is_file()
     headless = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "SDL_VIDEODRIVER")}

@@ -12,6 +12,7 @@ import yaml
 from conftest import run_module
 
 from rlpipe import RlpipeError, evaluate, load_run, make_env
+from rlpipe.evaluate import main as evaluate_main
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 TINY = ["progress=false", "eval_episodes=2"]
@@ -73,7 +74,7 @@ def trained(run_dir: Path, *overrides: str, env: dict[str, str] | None = None) -
     return yaml.safe_load((run_dir / "config.yaml").read_text())
 
 
-def test_dueling_network_from_the_command_line(tmp_path):
+def test_dueling_network_from_the_command_line(tmp_path, capsys):
     run_dir = tmp_path / "run"
     stored = trained(
         run_dir,
@@ -85,10 +86,12 @@ def test_dueling_network_from_the_command_line(tmp_path):
     )
     assert stored["algo"]["network"] == {"_target_": "dueling_dqn.DuelingQNet", "hidden": 16}
     # the spec imports code: refused until trusted, then rebuilt from config.yaml
-    refused = run_module("rlpipe.evaluate", f"run_dir={run_dir}", cwd=tmp_path)
-    assert refused.returncode == 2
-    assert "algo.network._target_='dueling_dqn.DuelingQNet'" in refused.stderr
-    assert "allow_env_import=true" in refused.stderr
+    with pytest.raises(SystemExit) as refused:  # in-process: examples/ is not importable here
+        evaluate_main([f"run_dir={run_dir}"])
+    assert refused.value.code == 2
+    stderr = capsys.readouterr().err
+    assert "algo.network._target_='dueling_dqn.DuelingQNet'" in stderr
+    assert "allow_env_import=true" in stderr
     assert "return" in evaluated(run_dir, "allow_env_import=true")
 
 
@@ -161,15 +164,17 @@ def test_td3_plugin_trains_from_python_and_loads_back(examples, registry, tmp_pa
     run.algo.close()
 
 
-def test_td3_plugin_trains_resumes_and_evaluates_from_the_cli(tmp_path):
+def test_td3_plugin_trains_resumes_and_evaluates_from_the_cli(tmp_path, registry, capsys):
     run_dir = tmp_path / "run"
     stored = trained(run_dir, *TD3_TINY, "total_frames=100", env=PLUGIN)
     assert stored["algo"]["name"] == "td3" and stored["algo"]["policy_delay"] == 2
     # without the plug-in: which algorithm is missing, and how to make it importable
-    missing = run_module("rlpipe.evaluate", f"run_dir={run_dir}", cwd=tmp_path)
-    assert missing.returncode == 2 and len(missing.stderr.strip().splitlines()) == 1
-    assert "algorithm 'td3' is not registered in this process" in missing.stderr
-    assert "RLPIPE_PLUGINS=<module>" in missing.stderr
+    with pytest.raises(SystemExit) as missing:  # in-process, where no plug-in was imported
+        evaluate_main([f"run_dir={run_dir}"])
+    stderr = capsys.readouterr().err
+    assert missing.value.code == 2 and len(stderr.strip().splitlines()) == 1
+    assert "algorithm 'td3' is not registered in this process" in stderr
+    assert "RLPIPE_PLUGINS=<module>" in stderr
     resumed = run_module(
         "rlpipe",
         f"resume={run_dir}",

@@ -156,8 +156,8 @@ def test_a_damaged_input_is_one_line_and_changes_nothing(tmp_path, run_copy, cas
 
 # a config or env error found once the job runs: (overrides, what the error line names)
 BAD_RUNS = {
-    "unknown-env-id": (["env=gym", "env.id=Nope-v0"], "Nope-v0"),
-    "bad-module-path": (["env=gym", "env.id=nomodule:X-v0"], "nomodule"),
+    "unknown-env-id": (["env=gym", "env.id=Nope-v0"], "cannot make gymnasium env 'Nope-v0'"),
+    "bad-module-path": (["env=gym", "env.id=nomodule:X-v0"], "names module 'nomodule'"),
     "dqn-on-continuous": (["env=pendulum"], "DQN needs a discrete action space"),
     "sac-on-discrete": (["algo=sac"], "SAC needs continuous actions"),
     "tuple-observation": (["env=gym", "env.id=Blackjack-v1"], "Tuple observation space"),
@@ -173,6 +173,12 @@ def test_a_bad_config_or_env_is_one_line_and_writes_nothing(tmp_path, case):
     result = rlpipe(*BASE, *overrides, f"hydra.run.dir={run_dir}", cwd=tmp_path)
     assert named in error_line(result)
     assert sorted(p.name for p in tmp_path.iterdir()) == []  # no dir, no log, no lock
+
+
+# a value refused before torch loads, and a network refused once envs and torch are up
+@pytest.mark.parametrize("case", ["lr-inf", "bad-network-target"])
+def test_a_bad_run_into_a_dir_that_was_there_keeps_it_empty(tmp_path, case):
+    overrides, named = BAD_RUNS[case]
     existing = tmp_path / "mine"  # a dir that was there: kept, and nothing written in it
     existing.mkdir()
     result = rlpipe(*BASE, *overrides, f"hydra.run.dir={existing}", cwd=tmp_path)

@@ -194,16 +194,30 @@ FILES: dict[str, tuple[Callable[[Path, Path], list[Path]], str]] = {
 }
 
 
-@pytest.mark.parametrize("case", FILES)
-def test_a_hostile_file_is_set_aside_and_nothing_outside_changes(tmp_path, run_copy, case):
-    damage, warned = FILES[case]
-    outside = damage(run_copy, tmp_path)
+# the cases planted together in one run dir, one resume each: no two touch the same name, and
+# every-file-a-link, which links them all, goes alone
+ROUNDS = [
+    ("lock-link", "checkpoint-link", "csv-fifo", "summary-link", "temp-link"),
+    ("lock-hard-link", "checkpoint-hard-link", "csv-hard-link", "curve-link"),
+    ("lock-fifo", "best-link", "csv-link", "log-link"),
+    ("lock-directory",),
+    ("every-file-a-link",),
+]
+
+
+def test_the_rounds_plant_every_case_once():
+    assert sorted(case for cases in ROUNDS for case in cases) == sorted(FILES)
+
+
+@pytest.mark.parametrize("cases", ROUNDS, ids=["+".join(cases) for cases in ROUNDS])
+def test_a_hostile_file_is_set_aside_and_nothing_outside_changes(tmp_path, run_copy, cases):
+    outside = [path for case in cases for path in FILES[case][0](run_copy, tmp_path)]
     before = {path: path.read_bytes() for path in outside}
     result = resume_more(tmp_path, run_copy)
     assert result.returncode == 0, result.stderr
     assert {path: path.read_bytes() for path in outside} == before  # not one byte outside
-    if warned:
-        assert any(warned in line for line in warnings_of(result.stderr)), result.stderr
+    for warned in filter(None, (FILES[case][1] for case in cases)):
+        assert any(warned in line for line in warnings_of(result.stderr)), (warned, result.stderr)
     assert_run_intact(run_copy, Reference(300, (100, 200, 300)))
     for path in run_copy.rglob("*"):  # what the run holds now is its own
         assert not path.is_symlink() or path.name.endswith(".refused"), path

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import run_module, start_module
+from conftest import assert_one_error_line, run_module, start_module
 from tensordict.nn import TensorDictModule
 from torch import nn
 
@@ -154,7 +154,6 @@ def _copy_run(src: Path, dst: Path) -> Path:
         ("missing", "run directory {tmp}/nowhere does not exist"),
         ("other_algo", "belongs to another run: it differs in algo.name ('reinforce' here"),
         ("other_env", "it differs in env.id ('MountainCar-v0' here, 'CartPole-v1' there)"),
-        ("all_damaged", "every checkpoint in {tmp}/run/checkpoints is damaged"),
         ("hostile", "refusing checkpoint {tmp}/run/checkpoints/ckpt_000000000300.pt"),
         ("no_checkpoint", "{tmp}/run has no checkpoint to resume from"),
         ("not_a_run", "{tmp} is not an rlpipe run directory"),
@@ -172,9 +171,6 @@ def test_bad_resume_is_one_line_and_touches_nothing(tmp_path, finished_run, case
         overrides = [o for o in overrides if not o.startswith("algo.")] + ["algo=reinforce"]
     elif case == "other_env":
         overrides.append("env=mountaincar")
-    elif case == "all_damaged":
-        for path in RunDir(run_dir).checkpoints():
-            path.write_bytes(b"not a checkpoint")
     elif case == "hostile":
         torch.save({"algo": _Evil()}, run_dir / "checkpoints" / f"ckpt_{300:012d}.pt")
     elif case == "no_checkpoint":
@@ -194,15 +190,14 @@ def test_bad_resume_is_one_line_and_touches_nothing(tmp_path, finished_run, case
     assert {p: v for p, v in after.items() if p.name not in ("rlpipe.log", ".lock")} == before
 
 
-def test_evaluate_on_a_run_without_checkpoint_is_one_line(tmp_path, finished_run):
+def test_evaluate_on_a_run_without_checkpoint_is_one_line(tmp_path, finished_run, capsys):
+    from rlpipe.evaluate import main
+
     run_dir = _copy_run(finished_run, tmp_path / "run")
     for path in RunDir(run_dir).checkpoints():
         path.unlink()
-    result = run_module("rlpipe.evaluate", f"run_dir={run_dir}", "episodes=2", cwd=tmp_path)
-    assert result.returncode == 2, result.stderr
-    lines = result.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("rlpipe: error: "), result.stderr
-    assert f"{run_dir} has no checkpoint yet" in lines[0]
+    message = f"{run_dir} has no checkpoint yet"
+    assert_one_error_line(main, [f"run_dir={run_dir}", "episodes=2"], message, capsys)
 
 
 class _Drifting(Algorithm):

@@ -73,11 +73,10 @@ def test_runner_logs_checkpoints_and_summarises(tmp_path):
     assert "final eval" in result.summary_line() and str(tmp_path) in result.summary_line()
 
 
-def test_a_runner_run_is_a_run_for_evaluate_plot_and_resume(tmp_path):
-    """A hand-built Runner writes config.yaml: the CLI evaluates it, plots group it, and
-    ``train`` continues it from its checkpoint."""
-    from conftest import run_module
-
+def test_a_runner_run_is_a_run_for_evaluate_plot_and_resume(tmp_path, capsys):
+    """A hand-built Runner writes config.yaml: ``rlpipe.evaluate`` evaluates it, plots group
+    it, and ``train`` continues it from its checkpoint."""
+    from rlpipe.evaluate import main as evaluate_main
     from rlpipe.pipeline import train
     from rlpipe.runs import find_runs, group_runs
 
@@ -110,8 +109,8 @@ def test_a_runner_run_is_a_run_for_evaluate_plot_and_resume(tmp_path):
         checkpoint_every=25_000,
     )
     assert load_checkpoint(RunDir(run_dir).checkpoints()[-1])["config"]["seed"] == 3
-    done = run_module("rlpipe.evaluate", f"run_dir={run_dir}", "episodes=2", cwd=tmp_path)
-    assert done.returncode == 0 and "on CartPole-v1: return" in done.stdout, done.stderr
+    evaluate_main([f"run_dir={run_dir}", "episodes=2"])
+    assert "on CartPole-v1: return" in capsys.readouterr().out
     assert [g.runs for g in group_runs(find_runs([tmp_path]))] == [[run_dir]]
     result = train(replace(cfg, total_frames=96, progress=False), run_dir)  # resumes at 64
     assert result.frames == 96
