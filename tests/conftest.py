@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import warm
 
 # ~tuned: the algorithms' own defaults (tests of the tuned settings name them)
 TINY = ["~tuned", "progress=false", "total_frames=200", "eval_every=100", "eval_episodes=2"]
@@ -61,9 +62,15 @@ def run_module(
     timeout: float = 300,
     pythonpath: Path | None = None,
     env: dict[str, str] | None = None,
+    fresh: bool = False,
 ) -> subprocess.CompletedProcess:
     """``python -m <module> args...`` in ``cwd`` (``pythonpath``: a folder to import from;
-    ``env``: more environment variables); returns the completed process (text output)."""
+    ``env``: more environment variables); returns the completed process (text output).
+
+    ``python -m rlpipe`` runs forked from a server that imported torch and the rest
+    (tests/warm.py) unless ``fresh`` or one of the other two asks for a new interpreter."""
+    if module == "rlpipe" and not (fresh or pythonpath or env):
+        return warm.run(module, list(args), cwd=cwd, env=_child_env(), timeout=timeout)
     return subprocess.run(
         [sys.executable, "-m", module, *args],
         cwd=cwd,

@@ -4,8 +4,8 @@ run dir is intact, and the reference runs each kill is compared with.
 
 Faults are injected with ``RLPIPE_FAULT=<point>[@<n>][:<SIGNAL>]`` (:mod:`rlpipe.faults`). The
 DQN share runs in CI; every other algorithm's share is marked ``faults`` (``pytest -m faults``).
-Every subprocess carries a unique ``RLPIPE_TEST_TAG`` so that no process of a run (ARS workers
-included) may outlive it unnoticed.
+Every subprocess carries a unique ``RLPIPE_TEST_TAG`` (a forked run, tests/warm.py, also its own
+session) so that no process of a run (ARS workers included) may outlive it unnoticed.
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ from pathlib import Path
 from unittest import mock
 
 import pytest
+import warm
 from conftest import run_module, start_module
 
 from rlpipe.checkpoint import load_checkpoint
@@ -120,7 +121,7 @@ ALGOS = {name: ["~tuned", *args] for name, args in ALGOS.items()}
 # The kill matrix covers every fault point in chains of runs in one run dir: each run resumes the
 # dir the previous one's fault left (the same command, the next fault), the last runs clean. A
 # point's kill is followed by the resume the contract describes, in the code path it names, and
-# a run dir takes 3-4 runs instead of 2-3 per point (each run costs ~10 s of imports).
+# a run dir takes 3-4 runs instead of 2-3 per point.
 CHAINS = {
     # killed before the first checkpoint; the resume starts at zero and is killed after its
     # final checkpoint, before summary.json; the clean resume only writes summary.json
@@ -183,17 +184,21 @@ def popen(*args: str, cwd: Path, tag: str, fault: str | None = None) -> subproce
 
 
 def live_processes(tag: str) -> list[int]:
-    """PIDs of live processes (zombies have no environment) whose environment holds ``tag``."""
+    """PIDs of live processes (zombies have no environment) whose environment holds ``tag``,
+    or in the session of a forked run tagged ``tag`` (tests/warm.py)."""
     needle = f"{TAG_VAR}={tag}".encode()
+    sessions = set(warm.SESSIONS.get(tag, ()))
     found = []
     for entry in Path("/proc").iterdir():
         if not entry.name.isdigit() or int(entry.name) == os.getpid():
             continue
         try:
             environ = (entry / "environ").read_bytes()
+            stat = (entry / "stat").read_text()
         except OSError:  # gone, or not ours to read
             continue
-        if needle in environ.split(b"\0"):
+        session = int(stat.rpartition(")")[2].split()[3])  # state, ppid, pgrp, session
+        if needle in environ.split(b"\0") or (session in sessions and environ):
             found.append(int(entry.name))
     return found
 

@@ -7,16 +7,18 @@ import subprocess
 import sys
 
 import pytest
-from conftest import TINY, assert_auto_chose_envpool
+from conftest import TINY, assert_auto_chose_envpool, run_module
 
 from rlpipe.algos import PPOConfig, SACConfig
 from rlpipe.cli import trap_notice
 
 
-def test_default_job_trains_and_writes_its_run_dir(rlpipe_cli, tmp_path):
-    proc = rlpipe_cli(*TINY, "checkpoint_every=100")
-    assert proc.returncode == 0, proc.stderr
+def test_default_job_trains_and_writes_its_run_dir(tmp_path):
+    """In a fresh interpreter, as typed (the other tests' runs are forked: tests/warm.py)."""
     run = tmp_path / "run"
+    args = [*TINY, "checkpoint_every=100", f"hydra.run.dir={run}"]
+    proc = run_module("rlpipe", *args, cwd=tmp_path, fresh=True)
+    assert proc.returncode == 0, proc.stderr
     assert "final eval" in proc.stdout and str(run) in proc.stdout
     assert_auto_chose_envpool(proc.stdout)
     assert json.loads((run / "summary.json").read_text())["frames"] == 200
@@ -94,7 +96,6 @@ def test_generic_gym_entry(rlpipe_cli):
 
 
 def test_multirun_sweeps_seeds(tmp_path):
-    from conftest import run_module
 
     proc = run_module(
         "rlpipe", "-m", *TINY, "seed=0,1", f"hydra.sweep.dir={tmp_path / 'sweep'}", cwd=tmp_path
@@ -182,8 +183,6 @@ def test_bad_input_is_one_clear_line(rlpipe_cli, tmp_path, args, message):
 def test_help_names_groups_options_keys_entry_points_and_examples(tmp_path):
     from dataclasses import fields
 
-    from conftest import run_module
-
     from rlpipe.config import Config
     from rlpipe.help import KEYS
 
@@ -229,7 +228,6 @@ def test_a_group_added_without_plus_is_told_to_use_it(rlpipe_cli, group):
 def test_cfg_job_prints_what_hydra_prints(tmp_path, overrides):
     """``--cfg job`` is composed once by rlpipe (checks included); ``-p _global_`` makes Hydra
     print the same config itself."""
-    from conftest import run_module
 
     ours = run_module("rlpipe", *overrides, "--cfg", "job", cwd=tmp_path)
     hydras = run_module("rlpipe", *overrides, "--cfg", "job", "-p", "_global_", cwd=tmp_path)
