@@ -14,6 +14,7 @@ from __future__ import annotations
 import atexit
 import multiprocessing
 import os
+import runpy
 import signal
 import subprocess
 import sys
@@ -86,11 +87,15 @@ def _kill_session(sid: int) -> None:
         pass
 
 
-def _main(module: str, args: list[str], cwd: str, env: dict[str, str], out: Path, err: Path):
+def _main(
+    module: str, args: list[str], cwd: str, env: dict[str, str], out: Path, err: Path
+) -> None:
     """The forked process: becomes ``python -m module args...`` and exits as it would."""
     os.setsid()
     for fd, path in ((1, out), (2, err)):
-        os.dup2(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600), fd)
+        opened = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        os.dup2(opened, fd)
+        os.close(opened)
     os.chdir(cwd)
     os.environ.clear()
     os.environ.update(env)
@@ -102,8 +107,6 @@ def _main(module: str, args: list[str], cwd: str, env: dict[str, str], out: Path
     code: int = 0
     try:
         sys.argv = [module, *args]
-        import runpy
-
         runpy.run_module(module, run_name="__main__", alter_sys=True)
     except SystemExit as exit_:
         if exit_.code is None or isinstance(exit_.code, int):
