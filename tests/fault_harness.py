@@ -25,12 +25,12 @@ from unittest import mock
 import pytest
 import warm
 from conftest import run_module, start_module
+from warm import TAG_VAR
 
 from rlpipe.checkpoint import load_checkpoint
 from rlpipe.rundir import RunDir
 
 FAULTS = pytest.mark.faults
-TAG_VAR = "RLPIPE_TEST_TAG"
 RUN_TIMEOUT = 900  # seconds for one subprocess run (2 shared cores: runs can crawl)
 IGNORED = {".lock", "rlpipe.log"}  # the last PID, Hydra's job log: may change on a refusal
 # several training episodes may end in one step: these rows share frames, every other metric's

@@ -96,7 +96,6 @@ def test_generic_gym_entry(rlpipe_cli):
 
 
 def test_multirun_sweeps_seeds(tmp_path):
-
     proc = run_module(
         "rlpipe", "-m", *TINY, "seed=0,1", f"hydra.sweep.dir={tmp_path / 'sweep'}", cwd=tmp_path
     )
@@ -228,7 +227,6 @@ def test_a_group_added_without_plus_is_told_to_use_it(rlpipe_cli, group):
 def test_cfg_job_prints_what_hydra_prints(tmp_path, overrides):
     """``--cfg job`` is composed once by rlpipe (checks included); ``-p _global_`` makes Hydra
     print the same config itself."""
-
     ours = run_module("rlpipe", *overrides, "--cfg", "job", cwd=tmp_path)
     hydras = run_module("rlpipe", *overrides, "--cfg", "job", "-p", "_global_", cwd=tmp_path)
     assert ours.returncode == hydras.returncode == 0, ours.stderr + hydras.stderr

@@ -12,6 +12,7 @@ run a fresh interpreter (``run_module(..., fresh=True)``).
 from __future__ import annotations
 
 import atexit
+import functools
 import multiprocessing
 import os
 import runpy
@@ -38,25 +39,24 @@ PRELOAD = [
     "gymnasium",
     "matplotlib.pyplot",
 ]
-_CONTEXT: list[multiprocessing.context.ForkServerContext] = []  # made on first use
-SESSIONS: dict[str | None, list[int]] = {}  # RLPIPE_TEST_TAG -> the sessions of its runs
+TAG_VAR = "RLPIPE_TEST_TAG"  # the tests' tag of a run's processes (tests/fault_harness.py)
+SESSIONS: dict[str | None, list[int]] = {}  # TAG_VAR's value -> the sessions of its runs
 
 
+@functools.cache
 def _context() -> multiprocessing.context.ForkServerContext:
     """The fork server, started on first use from an environment without the tests' variables
     (its environment is every forked run's ``/proc/<pid>/environ``)."""
-    if not _CONTEXT:
-        context = multiprocessing.get_context("forkserver")
-        context.set_forkserver_preload(PRELOAD)
-        import rlpipe  # noqa: F401  its import sets TorchRL's log level, read as TorchRL loads
+    context = multiprocessing.get_context("forkserver")
+    context.set_forkserver_preload(PRELOAD)
+    import rlpipe  # noqa: F401  its import sets TorchRL's log level, read as TorchRL loads
 
-        clean = {k: v for k, v in os.environ.items() if not k.startswith("RLPIPE_")}
-        with mock.patch.dict(os.environ, clean, clear=True):
-            from multiprocessing import forkserver
+    clean = {k: v for k, v in os.environ.items() if not k.startswith("RLPIPE_")}
+    with mock.patch.dict(os.environ, clean, clear=True):
+        from multiprocessing import forkserver
 
-            forkserver.ensure_running()
-        _CONTEXT.append(context)
-    return _CONTEXT[0]
+        forkserver.ensure_running()
+    return context
 
 
 def run(
@@ -70,7 +70,7 @@ def run(
         out, err = Path(folder) / "stdout", Path(folder) / "stderr"
         proc = _context().Process(target=_main, args=(module, args, str(cwd), env, out, err))
         proc.start()
-        SESSIONS.setdefault(env.get("RLPIPE_TEST_TAG"), []).append(proc.pid)
+        SESSIONS.setdefault(env.get(TAG_VAR), []).append(proc.pid)
         proc.join(timeout)
         if proc.exitcode is None:
             _kill_session(proc.pid)
