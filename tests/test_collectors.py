@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import warnings
 from functools import partial
 from pathlib import Path
 
@@ -115,7 +116,9 @@ def test_other_envs_and_policies_keep_torchrls_collector():
     counting = TensorDictModule(  # reads the step count, which only TorchRL's Collector feeds
         lambda obs, count: count.squeeze(-1) % 2, ["observation", "step_count"], ["action"]
     )
-    collector = make_collector(make_env(env_cfg), counting, 4, CPU)
+    with warnings.catch_warnings():  # a policy without weights: nothing for TorchRL to warn about
+        warnings.simplefilter("error")
+        collector = make_collector(make_env(env_cfg), counting, 4, CPU)
     assert isinstance(collector, TorchRLCollector)
     assert collector.batch(4)["action"][0].tolist() == [0, 1, 0, 1]
 

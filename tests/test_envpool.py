@@ -240,6 +240,7 @@ def _state(env_id: str, obs: np.ndarray) -> np.ndarray:
 
 
 @needs_envpool
+@pytest.mark.filterwarnings("ignore:.*precision lowered:UserWarning")  # EnvPool's float64 bounds
 @pytest.mark.parametrize(
     "env_id",
     ["CartPole-v1", "MountainCar-v0", "MountainCarContinuous-v0", "Acrobot-v1", "Pendulum-v1"],

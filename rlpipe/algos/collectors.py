@@ -67,6 +67,8 @@ class TorchRLCollector:
             policy_device=device,
             storing_device=device,
             interruptor=self._cut,
+            # nothing to move to ``device`` in a policy without weights: TorchRL would warn so
+            trust_policy=next(policy.parameters(), None) is None or None,
         )
         self._batches = iter(self.collector)
         # on one device the collector steps the very policy; otherwise it holds a copy
