@@ -18,6 +18,7 @@ builds one TensorDict per batch.
 from __future__ import annotations
 
 from collections.abc import Callable
+from itertools import chain
 
 import numpy as np
 import torch
@@ -59,6 +60,8 @@ class TorchRLCollector:
         self, env: EnvBase, policy: TensorDictModuleBase, steps: int, device: torch.device
     ) -> None:
         self.steps, self._cut = steps, BatchCut()
+        # TorchRL warns of a policy with no parameter or buffer to move to ``device``: trust it
+        tensorless = next(chain(policy.parameters(), policy.buffers()), None) is None
         self.collector = Collector(
             env,
             policy,
@@ -67,8 +70,7 @@ class TorchRLCollector:
             policy_device=device,
             storing_device=device,
             interruptor=self._cut,
-            # nothing to move to ``device`` in a policy without weights: TorchRL would warn so
-            trust_policy=next(policy.parameters(), None) is None or None,
+            trust_policy=True if tensorless else None,  # None: TorchRL's own choice
         )
         self._batches = iter(self.collector)
         # on one device the collector steps the very policy; otherwise it holds a copy
