@@ -32,8 +32,12 @@ SHARED_NOTE = (
     "before each run's evaluations met starts of their own: every held-out "
     "seed's periodic evals met nearly the same episode starts (seed + 10000 on consecutive "
     "seeds), and every final eval seed 0's 100, which the tuning runs' final evals met too; "
-    'such records are kept until run again; a ratio marked "runs on different days" '
-    "compares a re-run side with the other's earlier runs on the same machine"
+    "such records are kept until run again"
+)
+DAYS = "runs on different days"  # beside a ratio whose two sides ran on different days
+DAYS_NOTE = (
+    f'a ratio marked "{DAYS}" compares the two sides\' runs on one machine on different '
+    "days (one side re-run or run later), not runs made beside each other"
 )
 SPEED_TARGET = 0.5  # the issue's aim: rlpipe's time to the target at most half SB3's
 SOLVED_TARGET = 0.8  # and 8 of 10 held-out seeds solved
@@ -126,7 +130,7 @@ def ratio(ours: Side, theirs: Side, value: Callable[[Run], float | None]) -> tup
         days |= day_a != day_b
     if ratios:
         median = statistics.median(ratios)
-        return format(median, ".2f") + (" (runs on different days)" if days else ""), median
+        return format(median, ".2f") + (f" ({DAYS})" if days else ""), median
     return (f"{DASH} (on other machines)" if elsewhere else DASH), math.nan
 
 
@@ -343,6 +347,8 @@ def tables(presets: list[Preset], configs: dict[str, Config], runs: list[Run]) -
     notes = [note(p, configs[p.experiment], *s) for p, *s in zip(presets, ours_all, theirs_all)]
     if any(r.shared_starts for r in runs):
         summary += f"\n\n{SHARED_NOTE}."
+    if any(DAYS in cell for row in rows for cell in row):
+        summary += f"\n\n{DAYS_NOTE}."
     lines = legend(runs)
     return [table(HEADERS, rows), "", summary, "", *notes, "", table(DETAIL_HEADERS, details)] + [
         "",

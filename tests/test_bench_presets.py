@@ -120,6 +120,13 @@ def test_a_ratio_over_runs_of_different_days_says_so(bench) -> None:
         "0.25 (runs on different days)",
         0.25,
     )
+    # the tables say what the mark means, whether or not a record carries the ‡ of old starts
+    cfg = SimpleNamespace(total_frames=10_000, eval_episodes=20, eval_every=5_000)
+    text = "\n".join(bench.report.tables([preset], {"dqn_cartpole": cfg}, ours + theirs))
+    assert bench.report.DAYS_NOTE in text and "‡" not in text
+    ours[0].machine = theirs[0].machine
+    text = "\n".join(bench.report.tables([preset], {"dqn_cartpole": cfg}, ours + theirs))
+    assert "runs on different days" not in text
 
 
 def test_the_row_of_a_preset(bench) -> None:
