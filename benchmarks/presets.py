@@ -14,9 +14,10 @@ presets the IQM of the normalised finals with a 95% stratified-bootstrap CI, and
 How the runs run (``presets_runs.py``, ``presets_sb3.py``): each rlpipe run as a user runs it, in
 a subprocess, then ``python -m rlpipe.evaluate``; SB3 in a spawned process. ``--jobs`` runs go at
 once (rlpipe seed s and SB3 seed s side by side). Runs finished in ``--out`` by an earlier call
-are read, not run again, with the machine they ran on, so an interrupted benchmark continues
-(the hours-long presets from their last eval, on both sides) and the section can be made again;
-``--read-only`` makes it from what ``--out`` holds and runs nothing (runs not there: left out).
+are read, not run again (taking no slot), with the machine they ran on, so an interrupted
+benchmark continues (the hours-long presets from their last eval, on both sides) and the section
+can be made again; ``--read-only`` makes it from what ``--out`` holds and runs nothing (runs not
+there: left out).
 Each job leaves a small record (``rlpipe.json``, ``sb3.json``: evals, final eval, machine, load);
 under ``benchmarks/results/presets`` git keeps the records and ignores the run dirs, so the
 published table is remade from the repo and a benchmark spread over machines and days goes on.
@@ -141,8 +142,9 @@ def plan(
     configs: dict[str, Config],
     out: Path,
 ) -> tuple[list[list[tuple]], list[tuple[str, int, str]]]:
-    """The jobs, a group per preset and seed (rlpipe's run, and SB3's where it runs), and with
-    ``--read-only`` the runs left out since ``out`` has no finished one."""
+    """The jobs, a group per preset and seed (rlpipe's run, and SB3's where it runs), each with
+    whether ``out`` holds it finished, and with ``--read-only`` the runs left out since ``out``
+    has no finished one."""
     groups, missing = [], []
     for preset in presets:
         episodes = args.final_episodes or preset.final_episodes
@@ -157,10 +159,11 @@ def plan(
                 )
             group = []
             for which, job, finished in jobs:
-                if args.read_only and not finished(where):
+                done = finished(where)
+                if args.read_only and not done:
                     missing.append((preset.experiment, seed, which))
                 else:
-                    group.append((preset.experiment, seed, which, job))
+                    group.append((preset.experiment, seed, which, job, done))
             groups += [group] if group else []
     return groups, missing
 

@@ -213,29 +213,32 @@ class Scheduler:
     def __init__(self, jobs: int, total: int) -> None:
         self.jobs, self.total = jobs, total
         self.slots = threading.Semaphore(jobs)
-        self.pool = ThreadPoolExecutor(jobs)
+        self.pool = ThreadPoolExecutor(max(1, total))  # the slots, not the pool, bound the runs
         self.futures: list[Future[Run]] = []
         self.start, self.done = time.perf_counter(), 0
         self.lock = threading.Lock()
 
-    def group(self, jobs: Sequence[tuple[str, int, str, Callable[[], Run]]]) -> None:
-        """Start ``jobs`` (preset, seed, which, function) at once, as soon as there are slots."""
-        if len(jobs) > self.jobs:
+    def group(self, jobs: Sequence[tuple[str, int, str, Callable[[], Run], bool]]) -> None:
+        """Start ``jobs`` (preset, seed, which, function, done) at once, as soon as there are
+        slots; a done job (its record is read back) takes none, so it holds up no other run."""
+        running = [job for job in jobs if not job[4]]
+        if len(running) > self.jobs:
             for job in jobs:
                 self.group([job])
             return
-        for _ in jobs:
+        for _ in running:
             self.slots.acquire()
         self.futures += [self.pool.submit(self._run, *job) for job in jobs]
 
-    def _run(self, preset: str, seed: int, which: str, fn: Callable[[], Run]) -> Run:
+    def _run(self, preset: str, seed: int, which: str, fn: Callable[[], Run], done: bool) -> Run:
         start = time.perf_counter()
         try:
             run = fn()
         except Exception as e:  # one failed run must not sink a long benchmark
             run = Run(preset, seed, which, error=f"{type(e).__name__}: {e}")
         finally:
-            self.slots.release()
+            if not done:
+                self.slots.release()
         run.seconds = time.perf_counter() - start
         with self.lock:
             self.done += 1

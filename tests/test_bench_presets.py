@@ -10,6 +10,8 @@ import re
 import shutil
 import subprocess
 import sys
+import threading
+from functools import partial
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -75,6 +77,31 @@ def test_solved_needs_the_last_three_evals_and_the_final_eval(bench) -> None:
     assert not run(bench, 100, [500, 480, 500, 500], 500.0).solved(500)  # last three: 493.3
     assert not run(bench, 100, [500, 500, 500], 499.0).solved(500)  # the final eval below
     assert not run(bench, 100, [500, 500, 500], None).solved(500)  # no final eval
+
+
+def test_a_finished_run_read_back_holds_no_slot(bench) -> None:
+    """Resuming a half-run benchmark: each seed's rlpipe record is done, SB3's side runs. With
+    two slots the SB3 runs of two seeds overlap; a done run taking a slot would make them wait."""
+    second_started, Run = threading.Event(), bench.presets_runs.Run
+
+    def first() -> object:  # final 0: the second seed's run never started beside this one
+        return Run("p", 100, "SB3", [], float(second_started.wait(timeout=5)))
+
+    def second() -> object:
+        second_started.set()
+        return Run("p", 101, "SB3", [], 1.0)
+
+    scheduler = bench.presets_runs.Scheduler(2, 4)
+    for seed, job in ((100, first), (101, second)):
+        read_back = partial(Run, "p", seed, "rlpipe", [], 2.0)
+        scheduler.group([("p", seed, "rlpipe", read_back, True), ("p", seed, "SB3", job, False)])
+    runs = scheduler.results()
+    assert [(r.seed, r.which, r.final) for r in runs] == [
+        (100, "rlpipe", 2.0),
+        (100, "SB3", 1.0),
+        (101, "rlpipe", 2.0),
+        (101, "SB3", 1.0),
+    ]
 
 
 def test_a_machine_is_one_label_whatever_the_days_its_runs_ran_on(bench) -> None:
