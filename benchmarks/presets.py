@@ -17,10 +17,12 @@ once (rlpipe seed s and SB3 seed s side by side). Runs finished in ``--out`` by 
 are read, not run again (taking no slot), with the machine they ran on, so an interrupted
 benchmark continues (the hours-long presets from their last eval, on both sides) and the section
 can be made again; ``--read-only`` makes it from what ``--out`` holds and runs nothing (runs not
-there: left out).
+there: left out, an SB3 run under way with the frames of its newest save).
 Each job leaves a small record (``rlpipe.json``, ``sb3.json``: evals, final eval, machine, load);
 under ``benchmarks/results/presets`` git keeps the records and ignores the run dirs, so the
 published table is remade from the repo and a benchmark spread over machines and days goes on.
+Git keeps SB3's ARS saves too (tens of KB, no replay buffer): its hours-long seeds go on from
+them on the next machine; the other saves stay on the machine that made them.
 
     pip install -e ".[dev,bench]"
     python benchmarks/presets.py --sb3 --out benchmarks/results/presets --append BENCHMARKS.md \
@@ -49,7 +51,7 @@ from common import compose_run, load_span, parser, publish_section, section_head
 from presets_figure import profile_figure
 from presets_report import machines, profile_series, seed_text, tables
 from presets_runs import PACKAGES, Run, Scheduler, rlpipe_finished, rlpipe_job
-from presets_sb3 import sb3_finished, sb3_job
+from presets_sb3 import Sb3Saves, sb3_finished, sb3_job
 from presets_table import PRESETS, Preset, seeds_for
 
 from rlpipe.config import Config
@@ -141,10 +143,10 @@ def plan(
     seeds: dict[str, tuple[int, ...]],
     configs: dict[str, Config],
     out: Path,
-) -> tuple[list[list[tuple]], list[tuple[str, int, str]]]:
+) -> tuple[list[list[tuple]], list[tuple[str, int, str, int | None]]]:
     """The jobs, a group per preset and seed (rlpipe's run, and SB3's where it runs), each with
     whether ``out`` holds it finished, and with ``--read-only`` the runs left out since ``out``
-    has no finished one."""
+    has no finished one, each with the frames of its newest SB3 save (None: none)."""
     groups, missing = [], []
     for preset in presets:
         episodes = args.final_episodes or preset.final_episodes
@@ -161,7 +163,9 @@ def plan(
             for which, job, finished in jobs:
                 done = finished(where)
                 if args.read_only and not done:
-                    missing.append((preset.experiment, seed, which))
+                    save = Sb3Saves(where / "sb3-saves").newest() if which == "SB3" else None
+                    frames = save.evals[-1][0] if save else None
+                    missing.append((preset.experiment, seed, which, frames))
                 else:
                     group.append((preset.experiment, seed, which, job, done))
             groups += [group] if group else []
@@ -175,7 +179,7 @@ def section(
     runs: list[Run],
     loads: list[tuple[float, ...]],
     wall: float,
-    missing: list[tuple[str, int, str]],
+    missing: list[tuple[str, int, str, int | None]],
 ) -> str:
     """The benchmark's section of BENCHMARKS.md."""
     used = seed_text(sorted({r.seed for r in runs}))
@@ -218,10 +222,18 @@ def section(
         facts.append(f"1-min load average at the runs' starts: {spans}")
     if missing:  # per preset, each side's seeds: "dqn_cartpole (rlpipe 101, SB3 101)"
         sides: dict[str, dict[str, list[int]]] = {}
-        for name, seed, which in missing:
+        saved: dict[str, list[str]] = {}  # SB3 runs under way: "102 at 8,000,000"
+        for name, seed, which, frames in missing:
             sides.setdefault(name, {}).setdefault(which, []).append(seed)
+            saved.setdefault(name, []).extend([f"{seed} at {frames:,}"] if frames else [])
+        under_way = {
+            name: f"; SB3 saved, to go on from: {', '.join(at)} frames" if at else ""
+            for name, at in saved.items()
+        }
         left = "; ".join(
-            f"{name} (" + ", ".join(f"{w} {seed_text(s)}" for w, s in by.items()) + ")"
+            f"{name} ("
+            + ", ".join(f"{w} {seed_text(s)}" for w, s in by.items())
+            + f"{under_way[name]})"
             for name, by in sides.items()
         )
         facts.append(f"not in `--out`, left out (`--read-only`): {left}")

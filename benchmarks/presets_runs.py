@@ -81,11 +81,14 @@ class Run:
 
 def record(where: Path, start_load: float, **result: object) -> dict:
     """Write ``result`` with this process's machine and the load at the start and now to
-    ``where`` (JSON); the record is what a later call reads back."""
+    ``where`` (JSON); the record is what a later call reads back. It appears whole or not at
+    all (a temporary file, then a rename): a kill never leaves a torn record to read back."""
     saved = {**result, "machine": machine(PACKAGES), "load": [start_load, os.getloadavg()[0]]}
     saved["eval_starts"] = EVAL_STARTS
     where.parent.mkdir(parents=True, exist_ok=True)
-    where.write_text(json.dumps(saved, indent=2) + "\n")
+    tmp = where.with_suffix(".tmp")
+    tmp.write_text(json.dumps(saved, indent=2) + "\n")
+    os.replace(tmp, where)
     return saved
 
 

@@ -6,7 +6,11 @@ time off the training clock; observations through the Zoo's ``VecNormalize`` sta
 normalises them), then the same final greedy eval as ``rlpipe.evaluate``. Its results go to
 ``<out>/sb3.json`` with the machine and load it ran on; a later call reads them back. Hours-long
 presets save at every eval (model, replay buffer, normaliser) under ``sb3-saves/`` and a call
-with the same ``--out`` continues from the newest save, training clock included.
+with the same ``--out`` continues from the newest save, training clock included, its noise and
+episodes seeded afresh (:func:`resume_seed`). ARS's saves hold
+no replay buffer (a policy and a normaliser: tens of KB), so git keeps them beside the records
+(``.gitignore``) and a seed continues on another machine; a run's saves go once its record is
+written.
 """
 
 from __future__ import annotations
@@ -118,6 +122,12 @@ class Sb3Saves:
                 shutil.rmtree(old)
 
 
+def resume_seed(seed: int, frames: int) -> int:
+    """The seed of a run resumed at ``frames``. SB3's ``load`` seeds the noise and the env anew
+    from the run's own seed, which would replay the run's first draws after every resume."""
+    return int(np.random.SeedSequence(seed, spawn_key=(frames,)).generate_state(1)[0])
+
+
 def run_sb3(job: Sb3Job) -> dict[str, Any]:
     """Train SB3's ``job.algo`` as ``job`` says (one torch thread); evals and the final eval's
     mean."""
@@ -179,6 +189,7 @@ def run_sb3(job: Sb3Job) -> dict[str, Any]:
         if job.normalize:
             env = VecNormalize.load(str(progress.normalizer), env)
         model = algo.load(progress.model, env=env, device="cpu")
+        model.set_random_seed(resume_seed(job.seed, model.num_timesteps))
         if progress.replay.is_file():
             model.load_replay_buffer(progress.replay)
         callback = GreedyEval(saves, progress.evals, progress.evals[-1][2], model.num_timesteps)
@@ -224,6 +235,8 @@ def sb3_job(preset: Preset, cfg: Config, seed: int, episodes: int, out: Path) ->
         start = os.getloadavg()[0]
         with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
             result = record(saved, start, **pool.submit(run_sb3, job).result())
+        if job.save_dir is not None:  # never read again: the record is what a call reads back
+            shutil.rmtree(job.save_dir, ignore_errors=True)
     evals = [(int(f), float(m), float(s)) for f, m, s in result["evals"]]
     return Run(
         preset.experiment, seed, "SB3", evals, result["final"], reused=reused, **recorded(result)

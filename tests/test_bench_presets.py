@@ -319,7 +319,11 @@ def test_a_tiny_run_beside_sb3_and_its_read_back(tmp_path) -> None:
     # the final eval meets the seed's own starts (not seed 0's, which tuning runs met too)
     final = json.loads(next((job / "run" / "evaluation").glob("trained-*.json")).read_text())
     assert final["seed"] == episodes_seed(100, FINAL) != 0
-    # the same runs read back, and with --read-only a seed not in --out is left out, not run
+    # the same runs read back, and with --read-only a seed not in --out is left out, not run;
+    # an SB3 run under way (a save, no record) says where it goes on from
+    saves = tmp_path / "runs" / "dqn_cartpole" / "seed101" / "sb3-saves"
+    saves.mkdir(parents=True)
+    (saves / "progress.json").write_text(json.dumps({"dir": "320", "evals": [[320, 9.0, 0.5]]}))
     again = subprocess.run(
         [*command, "--read-only", "--seeds", "100", "101"], capture_output=True, text=True
     )
@@ -327,7 +331,10 @@ def test_a_tiny_run_beside_sb3_and_its_read_back(tmp_path) -> None:
     assert "2 of 2 runs read back" in again.stdout and row in again.stdout
     assert "2 run(s) at once" in first.stdout and "run(s) at once" not in again.stdout
     assert "1-min load average at the runs' starts: M1 " in again.stdout
-    left_out = "left out (`--read-only`): dqn_cartpole (rlpipe 101, SB3 101)"
+    left_out = (
+        "left out (`--read-only`): dqn_cartpole (rlpipe 101, SB3 101; "
+        "SB3 saved, to go on from: 101 at 320 frames)"
+    )
     assert left_out in again.stdout
     # the records alone (what benchmarks/results/ keeps, without run dirs) give the same row
     shutil.rmtree(job / "run")
