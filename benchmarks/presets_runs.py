@@ -35,6 +35,7 @@ from presets_table import Preset
 
 from rlpipe.config import Config, config_class, fingerprint
 from rlpipe.episodes import FINAL, episodes_seed
+from rlpipe.files import write_atomic
 from rlpipe.rundir import RunDir
 
 PACKAGES = ["torch", "torchrl", "tensordict", "gymnasium", "stable_baselines3", "sb3_contrib"]
@@ -82,13 +83,11 @@ class Run:
 def record(where: Path, start_load: float, **result: object) -> dict:
     """Write ``result`` with this process's machine and the load at the start and now to
     ``where`` (JSON); the record is what a later call reads back. It appears whole or not at
-    all (a temporary file, then a rename): a kill never leaves a torn record to read back."""
+    all (:func:`rlpipe.files.write_atomic`): a kill never leaves a torn record to read back."""
     saved = {**result, "machine": machine(PACKAGES), "load": [start_load, os.getloadavg()[0]]}
     saved["eval_starts"] = EVAL_STARTS
     where.parent.mkdir(parents=True, exist_ok=True)
-    tmp = where.with_suffix(".tmp")
-    tmp.write_text(json.dumps(saved, indent=2) + "\n")
-    os.replace(tmp, where)
+    write_atomic(where, (json.dumps(saved, indent=2) + "\n").encode())
     return saved
 
 

@@ -7,10 +7,9 @@ normalises them), then the same final greedy eval as ``rlpipe.evaluate``. Its re
 ``<out>/sb3.json`` with the machine and load it ran on; a later call reads them back. Hours-long
 presets save at every eval (model, replay buffer, normaliser) under ``sb3-saves/`` and a call
 with the same ``--out`` continues from the newest save, training clock included, its noise and
-episodes seeded afresh (:func:`resume_seed`). ARS's saves hold
-no replay buffer (a policy and a normaliser: tens of KB), so git keeps them beside the records
-(``.gitignore``) and a seed continues on another machine; a run's saves go once its record is
-written.
+episodes seeded afresh (:func:`resume_seed`). ARS's saves hold no replay buffer (a policy and a
+normaliser: tens of KB), so git keeps them beside the records (``.gitignore``) and a seed
+continues on another machine; a run's saves go once its record is written.
 """
 
 from __future__ import annotations
@@ -33,6 +32,7 @@ from presets_table import Preset
 from rlpipe.cadence import Cadence
 from rlpipe.config import Config
 from rlpipe.episodes import EVALUATION, FINAL, episode_quotas, episodes_seed, eval_envs
+from rlpipe.files import write_atomic
 
 
 @dataclass(frozen=True)
@@ -114,9 +114,7 @@ class Sb3Saves:
         normalizer = getattr(model, "get_vec_normalize_env", lambda: None)()
         if normalizer is not None:
             normalizer.save(where / "normalizer.pkl")
-        tmp = self.progress.with_suffix(".tmp")
-        tmp.write_text(json.dumps({"dir": frames, "evals": evals}))
-        os.replace(tmp, self.progress)
+        write_atomic(self.progress, json.dumps({"dir": frames, "evals": evals}).encode())
         for old in self.root.iterdir():  # earlier saves: the newest is all a resume needs
             if old.is_dir() and old.name != frames:
                 shutil.rmtree(old)

@@ -50,15 +50,15 @@ class FakeModel:
 
 
 def die_at(monkeypatch, tear: bool, rename: bool, after_rename: bool = False) -> None:
-    """The process dies while a ``.tmp`` file is written (``tear``: half of it on disk), in place
-    of ``os.replace`` (``rename``) or just after it (``after_rename``)."""
-    real_replace, real_write = os.replace, Path.write_text
+    """The process dies while a file is written atomically (``tear``: half of its temporary copy
+    on disk), in place of ``os.replace`` (``rename``) or just after it (``after_rename``)."""
+    real_replace, real_write = os.replace, os.write
 
-    def write_text(self: Path, text: str, *args, **kwargs):
-        if tear and self.suffix == ".tmp":
-            real_write(self, text[: len(text) // 2])  # a torn temporary file
+    def write(fd: int, data) -> int:
+        if tear:
+            real_write(fd, bytes(data[: len(data) // 2]))  # a torn temporary copy
             raise Killed
-        return real_write(self, text, *args, **kwargs)
+        return real_write(fd, data)
 
     def replace(src, dst):
         if rename:
@@ -67,7 +67,7 @@ def die_at(monkeypatch, tear: bool, rename: bool, after_rename: bool = False) ->
         if after_rename:
             raise Killed
 
-    monkeypatch.setattr(Path, "write_text", write_text)
+    monkeypatch.setattr(os, "write", write)
     monkeypatch.setattr(os, "replace", replace)
 
 
