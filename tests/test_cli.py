@@ -17,7 +17,9 @@ def test_default_job_trains_and_writes_its_run_dir(tmp_path):
     """In a fresh interpreter, as typed (the other tests' runs are forked: tests/warm.py)."""
     run = tmp_path / "run"
     args = [*TINY, "checkpoint_every=100", f"hydra.run.dir={run}"]
-    proc = run_module("rlpipe", *args, cwd=tmp_path, fresh=True)
+    # an empty matplotlib cache, as on a new machine: its font cache is built during the run
+    env = {"MPLCONFIGDIR": str(tmp_path / "mpl")}
+    proc = run_module("rlpipe", *args, cwd=tmp_path, env=env, fresh=True)
     assert proc.returncode == 0, proc.stderr
     assert "final eval" in proc.stdout and str(run) in proc.stdout
     assert_auto_chose_envpool(proc.stdout)
@@ -27,8 +29,15 @@ def test_default_job_trains_and_writes_its_run_dir(tmp_path):
     assert names[0].startswith("best_")  # the best evaluation's, beside the newest ones
     assert names[1:] == ["ckpt_000000000100.pt", "ckpt_000000000200.pt"]
     assert (run / "metrics" / "scalars" / "eval" / "return_mean.csv").exists()
-    # the console is rlpipe's: no third-party log lines (TorchRL's INFO, in colour)
-    assert "[torchrl]" not in proc.stdout + proc.stderr and "\x1b[" not in proc.stdout
+    # the console is rlpipe's: no third-party log lines (TorchRL's INFO, in colour; matplotlib's
+    # "generated new fontManager"), which go to the run's log
+    console = proc.stdout + proc.stderr
+    assert "[torchrl]" not in console and "\x1b[" not in proc.stdout
+    assert "matplotlib" not in console, console
+    assert (
+        "[matplotlib.font_manager][INFO] - generated new fontManager"
+        in (run / "rlpipe.log").read_text()
+    )
 
 
 def test_the_python_api_prints_no_third_party_log_lines(tmp_path):
