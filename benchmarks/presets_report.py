@@ -281,17 +281,18 @@ def legend(runs: list[Run]) -> list[str]:
     ]
 
 
-def note(p: Preset, cfg: Config, ours: Side, theirs: Side) -> str:
-    """What the preset's row stands on: target and its source, tuning seeds, evals, SB3, and,
-    where the row's runs stay short of 8 of 10 seeds or of half SB3's time to the target, why."""
+def note(p: Preset, cfg: Config, ours: Side, theirs: Side, with_sb3: bool = True) -> str:
+    """What the preset's row stands on: target and its source, tuning seeds, evals, SB3 (where
+    ``with_sb3``: the section has SB3's side), and, where the row's runs stay short of 8 of 10
+    seeds or of half SB3's time to the target, why."""
     text = (
         f"- `{p.experiment}`: target {p.target:g} ({p.target_from}); random policy {p.floor:g}; "
         f"tuned on seeds {seed_text(p.tuned_on)}; a greedy eval of {cfg.eval_episodes} episodes "
         f"every {cfg.eval_every:,} frames and at the end"
     )
-    if p.sb3 is None:
+    if with_sb3 and p.sb3 is None:
         text += f"; {p.no_sb3}"
-    else:
+    elif with_sb3:
         kwargs = ", ".join(f"{k}={v}" for k, v in {"n_envs": p.sb3_envs, **p.sb3}.items())
         normalize = ", VecNormalize(norm_obs=True, norm_reward=False)" if p.sb3_normalize else ""
         text += f"; SB3: {p.sb3_algo}('{p.sb3_policy}', {kwargs}{normalize})"
@@ -344,7 +345,10 @@ def tables(presets: list[Preset], configs: dict[str, Config], runs: list[Run]) -
         + ("; SB3 " + aggregate(measured) if measured else "")
         + "."
     )
-    notes = [note(p, configs[p.experiment], *s) for p, *s in zip(presets, ours_all, theirs_all)]
+    notes = [
+        note(p, configs[p.experiment], *s, with_sb3=bool(measured))
+        for p, *s in zip(presets, ours_all, theirs_all)
+    ]
     if any(r.shared_starts for r in runs):
         summary += f"\n\n{SHARED_NOTE}."
     if any(DAYS in cell for row in rows for cell in row):

@@ -221,6 +221,25 @@ def test_a_preset_short_of_8_of_10_says_so_in_its_row_and_note(bench) -> None:
     assert "short of" not in report.note(short, cfg, ours, none)
 
 
+def test_a_section_without_sb3s_side_leaves_its_settings_out_of_the_notes(bench) -> None:
+    """A section made without --sb3 (another backend's, say) names no SB3 settings it never
+    ran; one with SB3's side names them, for a preset SB3 has not run yet too."""
+    report, presets = bench.report, bench.presets_table.PRESETS
+    cfg = SimpleNamespace(total_frames=40_000, eval_episodes=10, eval_every=10_000)
+    ours = [run(bench, 100, [100, 500, 500, 500], 500.0)]
+    both = [presets["dqn_cartpole"], presets["mbrl_pendulum"]]
+    configs = {p.experiment: cfg for p in both}
+
+    def notes(runs) -> str:
+        return "\n".join(x for x in report.tables(both, configs, runs) if x.startswith("- `"))
+
+    alone = notes(ours)
+    assert alone.count("- `") == 2 and "SB3" not in alone, alone
+    theirs = [run(bench, 101, [100, 500, 500, 500], 500.0, "SB3", 5.0)]
+    beside = notes(ours + theirs)
+    assert "SB3: DQN('MlpPolicy'" in beside and "SB3 has no model-based RL" in beside
+
+
 def test_a_time_to_the_target_above_half_sb3s_is_flagged_and_its_note_says_why(bench) -> None:
     report = bench.report
     preset = bench.presets_table.PRESETS["dqn_cartpole"]
