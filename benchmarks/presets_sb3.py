@@ -18,6 +18,7 @@ import json
 import multiprocessing
 import os
 import shutil
+import sys
 import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
@@ -166,8 +167,15 @@ def run_sb3(job: Sb3Job) -> dict[str, Any]:
             returns = greedy_returns(self.model, self.envs, job.eval_episodes, seed, normalized)
             trained = self.seconds + t0 - self.start - self.off_clock
             self.evals.append((self.num_timesteps, float(np.mean(returns)), trained))
-            if self.saves is not None:
+            if self.saves is not None:  # an hours-long run: a line at each save
                 self.saves.save(self.model, self.evals)
+                print(
+                    f"presets: SB3 saved at {self.num_timesteps:,} of {job.frames:,} frames "
+                    f"(eval {self.evals[-1][1]:.1f}, {trained:,.0f} s of training) in "
+                    f"{self.saves.root}",
+                    file=sys.stderr,
+                    flush=True,
+                )
             self.off_clock += time.perf_counter() - t0
 
     def normalized(obs: np.ndarray) -> np.ndarray:

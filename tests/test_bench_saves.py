@@ -110,7 +110,9 @@ def test_a_save_killed_at_any_point_leaves_a_complete_one(presets, tmp_path, mon
 @pytest.mark.skipif(
     importlib.util.find_spec("sb3_contrib") is None, reason='needs the "bench" extra'
 )
-def test_an_sb3_run_with_the_zoos_normaliser_resumes_from_its_save(presets, tmp_path, monkeypatch):
+def test_an_sb3_run_with_the_zoos_normaliser_resumes_from_its_save(
+    presets, tmp_path, monkeypatch, capsys
+):
     """sb3-contrib's ARS on the Zoo's VecNormalize: the save holds the normaliser, and a later
     call with a larger budget goes on from the save's evals and frames, with draws of its own
     (SB3's load alone would seed them from the run's seed again, replaying its first ones)."""
@@ -122,6 +124,10 @@ def test_an_sb3_run_with_the_zoos_normaliser_resumes_from_its_save(presets, tmp_
     )
     first = presets.run_sb3(job)
     saved = json.loads((saves / "progress.json").read_text())
+    # each save says so on the console: the run is hours long
+    assert f"presets: SB3 saved at 1,600 of 1,600 frames (eval {first['evals'][-1][1]:.1f}, " in (
+        capsys.readouterr().err
+    )
     # an ARS iteration is 2 x 4 Pendulum episodes of 200 steps: 1600 frames
     assert saved["dir"] == "1600" and (saves / "1600" / "normalizer.pkl").is_file()
     shutil.copytree(saves, again)
