@@ -257,8 +257,11 @@ def main() -> None:
         out = (args.out or Path(tmp)).resolve()
         print(f"presets: run dirs under {out}", file=sys.stderr)
         groups, missing = plan(args, presets, seeds, configs, out)
+        total = sum(len(g) for g in groups)
+        read_back = sum(job[4] for g in groups for job in g)
+        print(f"presets: {read_back} of {total} runs read back from earlier calls", file=sys.stderr)
         loads, start = [os.getloadavg()], time.perf_counter()
-        scheduler = Scheduler(args.jobs, sum(len(g) for g in groups))
+        scheduler = Scheduler(args.jobs, total, read_back)
         for group in groups:
             scheduler.group(group)
         runs = scheduler.results()

@@ -210,10 +210,12 @@ def rlpipe_job(
 
 
 class Scheduler:
-    """Runs jobs ``jobs`` at a time, in order; the jobs of one group start together."""
+    """Runs jobs ``jobs`` at a time, in order; the jobs of one group start together. Of the
+    ``total`` jobs, ``read_back`` are done (records read back): a line for each of the others
+    as it ends, none for those."""
 
-    def __init__(self, jobs: int, total: int) -> None:
-        self.jobs, self.total = jobs, total
+    def __init__(self, jobs: int, total: int, read_back: int = 0) -> None:
+        self.jobs, self.total = jobs, total - read_back
         self.slots = threading.Semaphore(jobs)
         self.pool = ThreadPoolExecutor(max(1, total))  # the slots, not the pool, bound the runs
         self.futures: list[Future[Run]] = []
@@ -243,15 +245,16 @@ class Scheduler:
                 self.slots.release()
         run.seconds = time.perf_counter() - start
         with self.lock:
-            self.done += 1
+            self.done += not done
             status = f"FAILED ({run.error})" if run.error else "done"
-            print(
-                f"presets: {preset} seed {seed} {which} {status} in {run.seconds:.0f} s "
-                f"({self.done}/{self.total} runs, {time.perf_counter() - self.start:.0f} s "
-                "elapsed)",
-                file=sys.stderr,
-                flush=True,
-            )
+            if not done or run.error:  # a record read back says nothing unless it failed
+                print(
+                    f"presets: {preset} seed {seed} {which} {status} in {run.seconds:.0f} s "
+                    f"({self.done}/{self.total} runs, {time.perf_counter() - self.start:.0f} s "
+                    "elapsed)",
+                    file=sys.stderr,
+                    flush=True,
+                )
         return run
 
     def results(self) -> list[Run]:

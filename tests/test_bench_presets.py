@@ -79,6 +79,25 @@ def test_solved_needs_the_last_three_evals_and_the_final_eval(bench) -> None:
     assert not run(bench, 100, [500, 500, 500], None).solved(500)  # no final eval
 
 
+def test_only_the_runs_that_run_get_a_line(bench, capsys) -> None:
+    """A benchmark resumed or remade with --read-only reads hundreds of records back: no line
+    each, but one for each run that ran, and for a record that could not be read."""
+    Run = bench.presets_runs.Run
+
+    def broken() -> object:
+        raise ValueError("torn record")
+
+    scheduler = bench.presets_runs.Scheduler(1, 3, read_back=2)
+    scheduler.group([("p", 100, "rlpipe", partial(Run, "p", 100, "rlpipe", [], 1.0), True)])
+    scheduler.group([("p", 101, "rlpipe", broken, True)])
+    scheduler.group([("p", 100, "SB3", partial(Run, "p", 100, "SB3", [], 1.0), False)])
+    scheduler.results()
+    lines = sorted(capsys.readouterr().err.splitlines(), key=lambda line: "SB3" in line)
+    assert len(lines) == 2, lines
+    assert lines[0].startswith("presets: p seed 101 rlpipe FAILED (ValueError: torn record)")
+    assert lines[1].startswith("presets: p seed 100 SB3 done in 0 s (1/1 runs, ")
+
+
 def test_a_finished_run_read_back_holds_no_slot(bench) -> None:
     """Resuming a half-run benchmark: each seed's rlpipe record is done, SB3's side runs. With
     two slots the SB3 runs of two seeds overlap; a done run taking a slot would make them wait."""
