@@ -215,7 +215,7 @@ class Scheduler:
     as it ends, none for those."""
 
     def __init__(self, jobs: int, total: int, read_back: int = 0) -> None:
-        self.jobs, self.total = jobs, total - read_back
+        self.jobs, self.to_run = jobs, total - read_back
         self.slots = threading.Semaphore(jobs)
         self.pool = ThreadPoolExecutor(max(1, total))  # the slots, not the pool, bound the runs
         self.futures: list[Future[Run]] = []
@@ -250,7 +250,7 @@ class Scheduler:
             if not done or run.error:  # a record read back says nothing unless it failed
                 print(
                     f"presets: {preset} seed {seed} {which} {status} in {run.seconds:.0f} s "
-                    f"({self.done}/{self.total} runs, {time.perf_counter() - self.start:.0f} s "
+                    f"({self.done}/{self.to_run} runs, {time.perf_counter() - self.start:.0f} s "
                     "elapsed)",
                     file=sys.stderr,
                     flush=True,
