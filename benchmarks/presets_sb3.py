@@ -19,6 +19,7 @@ import multiprocessing
 import os
 import shutil
 import sys
+import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
@@ -127,9 +128,21 @@ def resume_seed(seed: int, frames: int) -> int:
     return int(np.random.SeedSequence(seed, spawn_key=(frames,)).generate_state(1)[0])
 
 
-def run_sb3(job: Sb3Job) -> dict[str, Any]:
-    """Train SB3's ``job.algo`` as ``job`` says (one torch thread); evals and the final eval's
-    mean."""
+def end_with(parent: int, every: float = 1.0) -> None:
+    """End this process once ``parent`` is gone (its benchmark killed, not stopped), so no SB3 run
+    trains on unseen for hours; a kill is safe for its saves (:class:`Sb3Saves`)."""
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(every)
+        os._exit(1)
+
+    threading.Thread(target=watch, daemon=True).start()
+
+
+def run_sb3(job: Sb3Job, parent: int | None = None) -> dict[str, Any]:
+    """Train SB3's ``job.algo`` as ``job`` says (one torch thread), ending if ``parent`` (the
+    benchmark's pid, if given) goes; evals and the final eval's mean."""
     import gymnasium as gym
     import sb3_contrib
     import stable_baselines3
@@ -138,6 +151,8 @@ def run_sb3(job: Sb3Job) -> dict[str, Any]:
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.vec_env import VecNormalize
 
+    if parent is not None:
+        end_with(parent)
     torch.set_num_threads(1)
 
     class GreedyEval(BaseCallback):
@@ -240,7 +255,7 @@ def sb3_job(preset: Preset, cfg: Config, seed: int, episodes: int, out: Path) ->
     else:
         start = os.getloadavg()[0]
         with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
-            result = record(saved, start, **pool.submit(run_sb3, job).result())
+            result = record(saved, start, **pool.submit(run_sb3, job, os.getpid()).result())
         if job.save_dir is not None:  # never read again: the record is what a call reads back
             shutil.rmtree(job.save_dir, ignore_errors=True)
     evals = [(int(f), float(m), float(s)) for f, m, s in result["evals"]]

@@ -170,7 +170,7 @@ def test_a_finished_run_leaves_its_record_and_no_saves(presets, tmp_path, monkey
     presets.Sb3Saves(tmp_path / "sb3-saves").save(FakeModel(1000), [[1000, -5.0, 1.5]])
     result = {"evals": [[1000, -5.0, 1.5], [2000, -3.0, 3.0]], "final": -2.5}
     monkeypatch.setattr(presets, "ProcessPoolExecutor", Inline)
-    monkeypatch.setattr(presets, "run_sb3", lambda job: result)
+    monkeypatch.setattr(presets, "run_sb3", lambda job, parent: result)
     die_at(monkeypatch, point == "write", point == "replace")
     if point is None:
         run = presets.sb3_job(preset, cfg, 100, 2, tmp_path)
