@@ -16,8 +16,10 @@ a subprocess, then ``python -m rlpipe.evaluate``; SB3 in a spawned process. ``--
 once (rlpipe seed s and SB3 seed s side by side). Runs finished in ``--out`` by an earlier call
 are read, not run again (taking no slot), with the machine they ran on, so an interrupted
 benchmark continues (the hours-long presets from their last eval, on both sides) and the section
-can be made again; ``--read-only`` makes it from what ``--out`` holds and runs nothing (runs not
-there: left out, an SB3 run under way with the frames of its newest save).
+can be made again. Ctrl-C or SIGTERM stops every run where it is, saved (``presets_stop.py``),
+and ends the call with one line; a kill leaves no run training on. ``--read-only`` makes the
+section from what ``--out`` holds and runs nothing (runs not there: left out, an SB3 run under
+way with the frames of its newest save).
 Each job leaves a small record (``rlpipe.json``, ``sb3.json``: evals, final eval, machine, load);
 under ``benchmarks/results/presets`` git keeps the records and ignores the run dirs, so the
 published table is remade from the repo and a benchmark spread over machines and days goes on.
@@ -46,12 +48,14 @@ import tempfile
 import time
 from functools import partial
 from pathlib import Path
+from typing import NoReturn
 
 from common import compose_run, load_span, parser, publish_section, section_head
 from presets_figure import profile_figure
 from presets_report import machines, profile_series, seed_text, tables
 from presets_runs import PACKAGES, Run, Scheduler, rlpipe_finished, rlpipe_job
 from presets_sb3 import Sb3Saves, sb3_finished, sb3_job
+from presets_stop import Stop, stop_runs, stop_signals
 from presets_table import PRESETS, Preset, seeds_for
 
 from rlpipe.config import Config
@@ -246,6 +250,22 @@ def section(
     return "\n".join(head + tables(presets, configs, runs))
 
 
+def stopped(scheduler: Scheduler, stop: Stop, out: Path | None) -> NoReturn:
+    """Stop the runs under way (:mod:`presets_stop`), wait for them, say so in one line, exit."""
+    asked = stop_runs(stop)
+    print(
+        f"presets: {stop}: stopping {asked} run(s) where they are (another signal kills them)",
+        file=sys.stderr,
+        flush=True,
+    )
+    scheduler.wait()
+    kept = f"the same command continues from what they saved under {out}"
+    if out is None:
+        kept = "they ran in a temporary dir, now gone (--out keeps runs to continue)"
+    print(f"presets: stopped by {stop}; {kept}", file=sys.stderr)
+    sys.exit(128 + stop.signum)
+
+
 def main() -> None:
     p, args = arguments()
     try:
@@ -262,9 +282,13 @@ def main() -> None:
         print(f"presets: {read_back} of {total} runs read back from earlier calls", file=sys.stderr)
         loads, start = [os.getloadavg()], time.perf_counter()
         scheduler = Scheduler(args.jobs, total, read_back)
-        for group in groups:
-            scheduler.group(group)
-        runs = scheduler.results()
+        with stop_signals():
+            try:
+                for group in groups:
+                    scheduler.group(group)
+                runs = scheduler.results()
+            except Stop as stop:
+                stopped(scheduler, stop, args.out)
         loads.append(os.getloadavg())
         wall = time.perf_counter() - start
     if args.figure is not None:

@@ -20,17 +20,17 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import subprocess
 import sys
 import threading
 import time
 from collections.abc import Callable, Sequence
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 from common import machine, read_scalar
+from presets_stop import RUNS
 from presets_table import Preset
 
 from rlpipe.config import Config, config_class, fingerprint
@@ -118,8 +118,7 @@ def _call(args: list[str], log: Path, cwd: Path) -> None:
     with open(log, "a") as f:
         f.write(f"$ python {' '.join(args)}\n")
         f.flush()
-        command = [sys.executable, *guard, *args]
-        code = subprocess.call(command, stdout=f, stderr=f, env=env, cwd=cwd)
+        code = RUNS.call([sys.executable, *guard, *args], stdout=f, stderr=f, env=env, cwd=cwd)
     if code != 0:
         lines = [line for line in log.read_text().splitlines() if line.strip()]
         raise RuntimeError(f"exit {code}: {lines[-1] if lines else '(no output)'} (log: {log})")
@@ -257,6 +256,8 @@ class Scheduler:
         with self.lock:
             self.done += not done
             status = f"FAILED ({run.error})" if run.error else "done"
+            if run.error and RUNS.stopping:  # asked to stop (or not started): not a failure
+                status = "stopped"
             if not done or run.error:  # a record read back says nothing unless it failed
                 print(
                     f"presets: {preset} seed {seed} {which} {status} in {run.seconds:.0f} s "
@@ -267,6 +268,12 @@ class Scheduler:
                 )
         return run
 
+    def wait(self) -> None:
+        """Until every job started has ended: its future, not its thread, as a join a signal
+        interrupts takes the thread for ended from then on (CPython before 3.13)."""
+        wait(self.futures)
+
     def results(self) -> list[Run]:
+        self.wait()
         self.pool.shutdown(wait=True)
         return [f.result() for f in self.futures]

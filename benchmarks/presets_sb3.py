@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 from presets_runs import Run, record, recorded
+from presets_stop import RUNS, Stopped, own_session
 from presets_table import Preset
 
 from rlpipe.cadence import Cadence
@@ -254,8 +255,14 @@ def sb3_job(preset: Preset, cfg: Config, seed: int, episodes: int, out: Path) ->
         result = json.loads(saved.read_text())
     else:
         start = os.getloadavg()[0]
-        with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
-            result = record(saved, start, **pool.submit(run_sb3, job, os.getpid()).result())
+        spawn = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(1, mp_context=spawn, initializer=own_session) as pool:
+            with RUNS.starting():  # its process starts here: a stop under way sends it SIGINT
+                future = pool.submit(run_sb3, job, os.getpid())
+            try:
+                result = record(saved, start, **future.result())
+            except KeyboardInterrupt as e:  # the stop's SIGINT, in the SB3 process
+                raise Stopped("stopped") from e
         if job.save_dir is not None:  # never read again: the record is what a call reads back
             shutil.rmtree(job.save_dir, ignore_errors=True)
     evals = [(int(f), float(m), float(s)) for f, m, s in result["evals"]]
