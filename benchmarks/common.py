@@ -37,10 +37,11 @@ def busy(on: bool):
             proc.wait()
 
 
-def parser(description: str) -> argparse.ArgumentParser:
-    """Arguments every benchmark takes: seeds and an optional Markdown file to publish to."""
+def parser(description: str, seeds: str = "0 1 2") -> argparse.ArgumentParser:
+    """Arguments every benchmark takes: seeds (``seeds``: the default, in words where not
+    ``0 1 2``) and an optional Markdown file to publish to."""
     p = argparse.ArgumentParser(description=description)
-    p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help=f"default: {seeds}")
     p.add_argument(
         "--append", type=Path, help="put the section into this Markdown file (replacing its own)"
     )

@@ -90,13 +90,22 @@ def compose(preset: Preset, frames: int | None, extra: list[str]) -> Config:
 
 def arguments() -> tuple[argparse.ArgumentParser, argparse.Namespace]:
     """The command line's parser and its arguments."""
-    p = parser(__doc__.splitlines()[0])
+    p = parser(
+        __doc__.splitlines()[0], "each preset's held-out seeds (100-109; sac_bipedal 100-102)"
+    )
     p.set_defaults(seeds=None)  # None: each preset's held-out seeds
+    p.epilog = (
+        "Ctrl-C or SIGTERM stops every run where it is, saved; the same command (the same --out) "
+        "continues."
+    )
     p.add_argument("--presets", nargs="+", metavar="NAME", help=f"of: {', '.join(PRESETS)}")
     p.add_argument("--tune", action="store_true", help="a tuning run: --seeds below 100 only")
     p.add_argument("--sb3", action="store_true", help="also run SB3 with the RL Zoo's settings")
     p.add_argument(
-        "--jobs", type=int, default=max(1, (os.cpu_count() or 2) // 2), help="runs at once"
+        "--jobs",
+        type=int,
+        default=max(1, (os.cpu_count() or 2) // 2),
+        help="runs at once (default: half the cores)",
     )
     p.add_argument("--frames", type=int, help="override every preset's budget (smoke tests)")
     p.add_argument("--final-episodes", type=int, help="override the final eval's episodes")
