@@ -31,7 +31,7 @@ class Stop(BaseException):
 
 
 class Stopped(Exception):
-    """A run did not start because the benchmark is stopping."""
+    """A run stopped, or did not start, because the benchmark is stopping."""
 
 
 class Runs:
