@@ -3,6 +3,7 @@ Hydra loads; everything else is the train command, :mod:`rlpipe.command`."""
 
 from __future__ import annotations
 
+import os
 import sys
 
 
@@ -13,10 +14,13 @@ def main() -> None:
         from rlpipe.help import help_text
 
         try:
-            print(help_text())
+            print(help_text(), flush=True)
         except RlpipeError as err:  # a plug-in that does not import
             print(f"rlpipe: error: {err}", file=sys.stderr)
             sys.exit(2)
+        except BrokenPipeError:  # `--help | head`: the reader left early, as with any Unix tool
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # none at exit
+            sys.exit(141)  # 128 + SIGPIPE, what a shell reports for a tool a closed pipe stopped
         return
     from rlpipe.command import main as command
 

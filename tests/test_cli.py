@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 
@@ -220,6 +221,24 @@ def test_help_names_groups_options_keys_entry_points_and_examples(tmp_path):
     ):
         assert f"python -m {command}" in text
     assert not (tmp_path / "outputs").exists()  # help trains nothing
+
+
+def test_help_into_a_closed_pipe_ends_quietly(tmp_path):
+    """``--help | head``: the reader gone before the text is written; no traceback."""
+    read, write = os.pipe()
+    os.close(read)  # no reader at all: the first write fails, every time
+    try:
+        done = subprocess.run(
+            [sys.executable, "-m", "rlpipe", "--help"],
+            stdout=write,
+            stderr=subprocess.PIPE,
+            text=True,
+            cwd=tmp_path,
+            timeout=120,
+        )
+    finally:
+        os.close(write)
+    assert (done.returncode, done.stderr) == (141, "")
 
 
 @pytest.mark.parametrize("group", ["experiment", "sweep"])
