@@ -261,7 +261,7 @@ def section(
 
 def stopped(scheduler: Scheduler, stop: Stop, out: Path | None) -> NoReturn:
     """Stop the runs under way (:mod:`presets_stop`), wait for them, say so in one line, exit."""
-    asked = stop_runs(stop)
+    asked = stop_runs()
     print(
         f"presets: {stop}: stopping {asked} run(s) where they are (another signal kills them)",
         file=sys.stderr,

@@ -87,6 +87,9 @@ def own_session() -> None:
 
 
 def _raise_stop(signum: int, frame: object) -> None:
+    for each in SIGNALS:  # first: a second signal, however soon, kills the runs
+        if signal.getsignal(each) is _raise_stop:
+            signal.signal(each, _kill_runs)
     raise Stop(signum)
 
 
@@ -96,8 +99,8 @@ def _kill_runs(signum: int, frame: object) -> None:
 
 @contextmanager
 def stop_signals() -> Iterator[None]:
-    """Within: SIGINT and SIGTERM raise :class:`Stop` in the main thread (a SIGINT ignored from the
-    start, as under ``nohup ... &``, stays ignored)."""
+    """Within: SIGINT and SIGTERM raise :class:`Stop` in the main thread, once; after that they
+    kill the runs (a SIGINT ignored from the start, as under ``nohup ... &``, stays ignored)."""
     previous = {signum: signal.getsignal(signum) for signum in SIGNALS}
     for signum, handler in previous.items():
         if handler is not signal.SIG_IGN:
@@ -109,10 +112,7 @@ def stop_signals() -> Iterator[None]:
             signal.signal(signum, handler)
 
 
-def stop_runs(stop: Stop) -> int:
-    """Ask every run to stop (SIGINT); a further SIGINT or SIGTERM kills them. How many were
-    asked."""
-    for signum in SIGNALS:
-        if signal.getsignal(signum) is _raise_stop:
-            signal.signal(signum, _kill_runs)
+def stop_runs() -> int:
+    """Ask every run to stop (SIGINT; a further SIGINT or SIGTERM, from the moment :class:`Stop`
+    was raised, kills them). How many were asked."""
     return RUNS.signal(signal.SIGINT)
