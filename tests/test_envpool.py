@@ -190,7 +190,11 @@ def test_auto_keeps_the_backend_a_run_recorded():
         (EnvConfig(id="rlpipe/CartPoleNoop-v0", backend="envpool"), "BipedalWalker-v3, "),
         (
             EnvConfig(id="CartPole-v1", backend="envpool", kwargs={"foo": 1}),
-            "cannot honour env.kwargs",
+            r"cannot honour env.kwargs \{'foo': 1\}: for CartPole-v1 it takes none;",
+        ),
+        (
+            EnvConfig(id="BipedalWalker-v3", backend="envpool", kwargs={"hardcore": 1}),
+            "for BipedalWalker-v3 it takes hardcore=true[|]false;",
         ),
     ],
 )

@@ -80,7 +80,11 @@ def _why_not_envpool(cfg: EnvConfig) -> str | None:
             f"({', '.join(ENVPOOL_IDS)}), not {cfg.id!r}"
         )
     if envpool_task(cfg) is None:
-        return f"EnvPool cannot honour env.kwargs {cfg.kwargs} (it builds {cfg.id} from its id)"
+        takes = [f"{key}=true|false" for env_id, key in ENVPOOL_VARIANTS if env_id == cfg.id]
+        return (
+            f"EnvPool cannot honour env.kwargs {cfg.kwargs}: for {cfg.id} it takes "
+            f"{' or '.join(takes) or 'none'}"
+        )
     if envpool_version() is None:
         version = ".".join(map(str, MIN_ENVPOOL))
         return f"EnvPool >= {version} is not installed (install it: {ENVPOOL_INSTALL})"
