@@ -179,6 +179,12 @@ def test_auto_picks_envpool_where_it_can_and_says_why(cfg, backend):
     assert backend_of(cfg, render_mode="rgb_array") == "gymnasium"  # videos render on gymnasium
 
 
+@needs_envpool
+def test_auto_names_the_variant_envpool_runs():
+    line = resolve_backend(EnvConfig(id="BipedalWalker-v3", kwargs={"hardcore": True}))[1]
+    assert " runs BipedalWalkerHardcore-v3; " in line
+
+
 def test_auto_keeps_the_backend_a_run_recorded():
     chosen, line = resolve_backend(EnvConfig(id="CartPole-v1"), recorded="gymnasium")
     assert chosen.backend == "gymnasium" and "recorded" in line

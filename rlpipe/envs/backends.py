@@ -127,7 +127,8 @@ def resolve_backend(cfg: EnvConfig, recorded: str | None = None) -> tuple[EnvCon
     elif cfg.id in ENVPOOL_DIFFERS and _why_not_envpool(cfg) is None:
         why = f"auto: {ENVPOOL_DIFFERS[cfg.id]}; env.backend=envpool to use it anyway"
     elif backend == "envpool":
-        why = f"auto: EnvPool {envpool_version()} runs {cfg.id}; env.backend=gymnasium to change"
+        task = envpool_task(cfg)  # the variant env.kwargs select: BipedalWalkerHardcore-v3
+        why = f"auto: EnvPool {envpool_version()} runs {task}; env.backend=gymnasium to change"
     elif cfg.id not in ENVPOOL_IDS:  # the usual case for an env of one's own: said briefly
         why = f"auto: EnvPool does not run {cfg.id}"
     else:
