@@ -65,7 +65,8 @@ def latest_run(root: str | Path = "outputs") -> Path:
         files = [run / RunDir.CONFIG, run / RunDir.SUMMARY, *rundir.checkpoints()]
         return max((os.lstat(f).st_mtime for f in files if os.path.lexists(f)), default=0.0)
 
-    runs = [path.parent for path in Path(root).glob(f"**/{RunDir.CONFIG}")]
+    found = Path(root).glob(f"**/{RunDir.CONFIG}")  # Hydra's .hydra/config.yaml is no run dir
+    runs = [path.parent for path in found if path.parent.name != RunDir.HYDRA]
     check(
         bool(runs),
         f"run_dir=latest found no run under {root}/ (no {RunDir.CONFIG}); train first "

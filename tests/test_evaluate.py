@@ -104,6 +104,29 @@ def test_evaluate_video(run_dir: Path, tmp_path: Path, capsys: pytest.CaptureFix
     assert "video" in capsys.readouterr().out
 
 
+def test_latest_is_the_newest_run_dir_not_its_hydra_record(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A run started last, no checkpoint yet: ``latest`` is it, and the error names it (not its
+    ``.hydra`` folder, whose config.yaml Hydra writes after the run's own)."""
+    from omegaconf import OmegaConf
+
+    from rlpipe.runs import latest_run
+
+    config = OmegaConf.to_yaml(OmegaConf.structured(Config()))
+    old, new = tmp_path / "outputs" / "day" / "old", tmp_path / "outputs" / "day" / "new"
+    (old / "checkpoints").mkdir(parents=True)
+    (old / "config.yaml").write_text(config)
+    (old / "checkpoints" / "ckpt_000000000100.pt").write_bytes(b"")
+    (new / ".hydra").mkdir(parents=True)
+    for i, path in enumerate([new / "config.yaml", new / ".hydra" / "config.yaml"]):
+        path.write_text(config)
+        os.utime(path, (2e9 + i, 2e9 + i))  # the .hydra record newest of all
+    assert latest_run(tmp_path / "outputs") == new
+    monkeypatch.chdir(tmp_path)
+    assert_one_error_line(main, ["run_dir=latest"], "outputs/day/new has no checkpoint", capsys)
+
+
 @NEEDS_VIDEO
 def test_latest_run_best_checkpoint_live_window_and_a_longer_video(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
