@@ -21,7 +21,7 @@ from omegaconf import MISSING, DictConfig, OmegaConf, open_dict
 from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
 
 from rlpipe.config import AlgoConfig, Config, EnvConfig
-from rlpipe.console import say
+from rlpipe.console import console_may_close, say
 from rlpipe.errors import RlpipeError, check
 from rlpipe.outcomes import Interrupted
 from rlpipe.registry import ALGORITHMS, how_to_register
@@ -216,15 +216,17 @@ def run_entry_point(
     doc: str, argv: Sequence[str] | None, body: Callable[[list[str]], None]
 ) -> None:
     """The opening of ``python -m rlpipe.<command>``: ``-h``/``--help`` prints ``doc``, else
-    ``body(args)`` runs; its user errors print one line, exit 2."""
+    ``body(args)`` runs; its user errors print one line, exit 2. A console that closes ends
+    neither."""
     args = sys.argv[1:] if argv is None else list(argv)
-    if {"-h", "--help"} & set(args):
-        print(doc.strip())
-        return
-    try:
-        body(args)
-    except USER_ERRORS as err:
-        fail(err)
+    with console_may_close():
+        if {"-h", "--help"} & set(args):
+            print(doc.strip())
+            return
+        try:
+            body(args)
+        except USER_ERRORS as err:
+            fail(err)
 
 
 def format_error(err: BaseException) -> str:

@@ -1,13 +1,16 @@
-"""rlpipe's own lines (resume notices, warnings, the summary line): printed on the console and
-recorded in the run's log file, ``<run dir>/rlpipe.log``, whose handler writes the file itself,
-never through a link."""
+"""rlpipe's own lines (resume notices, warnings, the summary line): printed on the console, which
+may close under a command without ending it, and recorded in the run's log file,
+``<run dir>/rlpipe.log``, whose handler writes the file itself, never through a link."""
 
 from __future__ import annotations
 
 import logging
+import os
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
-from typing import IO
+from typing import IO, Any
 
 from rlpipe.files import NotOwnFile, open_append, set_aside, strange
 
@@ -50,3 +53,45 @@ class RunLogHandler(logging.FileHandler):
                 file=sys.stderr,
             )
             return open_append(path, "a", encoding=self.encoding or "utf-8", errors=self.errors)
+
+
+class _Console:
+    """``sys.stdout`` or ``sys.stderr`` whose reader may leave (``| head``, a pager quit): from
+    then on what is written goes to the null device, not to a ``BrokenPipeError``."""
+
+    def __init__(self, stream: IO[str]) -> None:
+        self.stream = stream
+
+    def write(self, text: str) -> int:
+        try:
+            return self.stream.write(text)
+        except BrokenPipeError:
+            self._reader_gone()
+            return len(text)
+
+    def flush(self) -> None:
+        try:
+            self.stream.flush()
+        except BrokenPipeError:
+            self._reader_gone()
+
+    def _reader_gone(self) -> None:
+        os.dup2(os.open(os.devnull, os.O_WRONLY), self.stream.fileno())
+
+    def __getattr__(self, name: str) -> Any:  # isatty, fileno, encoding, ...: the stream's
+        return getattr(self.stream, name)
+
+
+@contextmanager
+def console_may_close() -> Iterator[None]:
+    """Within: a console that closes ends nothing: a run trains on (its lines still reach
+    rlpipe.log), a command finishes its work; outside, the streams are as they were."""
+    saved = sys.stdout, sys.stderr
+    sys.stdout, sys.stderr = (None if s is None else _Console(s) for s in saved)
+    try:
+        yield
+    finally:
+        for stream in (sys.stdout, sys.stderr):
+            if stream is not None:
+                stream.flush()
+        sys.stdout, sys.stderr = saved
