@@ -18,9 +18,9 @@ from rlpipe.errors import check
 from rlpipe.metrics import EVAL_METRIC, parse_rows, read_metric_bytes
 from rlpipe.rundir import RunDir
 
-# overrides that never tell experiments apart: seeds are what a group averages over, and a resumed
-# run is the run it continues
-NOT_GROUPED = ("seed", "resume")
+# overrides that never tell experiments apart: seeds are what a group averages over, a resumed
+# run is the run it continues, and the rest change what is shown or kept, not what is learnt
+NOT_GROUPED = ("seed", "resume", "progress", "log_every", "keep_checkpoints", "logger")
 T = TypeVar("T")
 MAX_GENERATIONS = 100  # init_from links followed at most (a hand-edited loop ends there)
 
@@ -88,13 +88,14 @@ def run_overrides(run_dir: Path) -> list[str]:
 
 
 def _key(override: str) -> str:
-    return override.split("=")[0].lstrip("+~")
+    """The top-level key an override sets (``logger.project=x``: ``logger``)."""
+    return override.split("=")[0].lstrip("+~").split(".")[0]
 
 
 def group_by_overrides(
     items: Sequence[T], overrides_of: Callable[[T], Sequence[str]]
 ) -> list[tuple[str, list[T]]]:
-    """``items`` grouped by their overrides but for ``seed`` and ``resume``, each group with its
+    """``items`` grouped by their overrides but for :data:`NOT_GROUPED`'s, each group with its
     label: its overrides that not every group shares (a single group: its overrides, or
     "defaults"), in the order the groups first appear."""
     keyed: dict[frozenset[str], list[T]] = {}
@@ -109,7 +110,8 @@ def group_by_overrides(
 
 
 def group_runs(runs: Sequence[Path]) -> list[Group]:
-    """Group runs that differ only by ``seed`` (or ``resume``), labelled by what sets them apart.
+    """Group runs that differ only by ``seed`` (or :data:`NOT_GROUPED`'s other keys), labelled by
+    what sets them apart.
 
     The groups and labels of :func:`group_by_overrides`, over the overrides that made each run."""
     return [Group(label, members) for label, members in group_by_overrides(runs, run_overrides)]

@@ -220,13 +220,14 @@ def test_check_writable_writes_nothing(tmp_path: Path) -> None:
     assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
 
 
-def test_seeds_and_resumes_group_together_other_overrides_apart(tmp_path):
+def test_seeds_resumes_and_display_keys_group_together_other_overrides_apart(tmp_path):
     from rlpipe.runs import group_runs
 
     made = {
         "a0": ["seed=0", "algo.lr=0.1"],
         "a1": ["seed=1", "algo.lr=0.1", f"resume={tmp_path / 'a1'}"],  # a resumed seed
         "b0": ["seed=0", "algo.lr=0.2"],
+        "b1": ["seed=1", "algo.lr=0.2", "progress=false", "logger=tensorboard"],  # shown elsewhere
     }
     for name, overrides in made.items():
         (tmp_path / name / ".hydra").mkdir(parents=True)
@@ -236,5 +237,5 @@ def test_seeds_and_resumes_group_together_other_overrides_apart(tmp_path):
     groups = group_runs([tmp_path / name for name in made])
     assert sorted((g.label, len(g.runs)) for g in groups) == [
         ("algo.lr=0.1", 2),
-        ("algo.lr=0.2", 1),
+        ("algo.lr=0.2", 2),
     ]
