@@ -110,10 +110,10 @@ def group_by_overrides(
 
 
 def group_runs(runs: Sequence[Path]) -> list[Group]:
-    """Group runs that differ only by ``seed`` (or :data:`NOT_GROUPED`'s other keys), labelled by
-    what sets them apart.
+    """Group runs that differ only by ``seed``, labelled by what sets them apart.
 
-    The groups and labels of :func:`group_by_overrides`, over the overrides that made each run."""
+    The groups and labels of :func:`group_by_overrides` (which also groups across the other keys
+    of :data:`NOT_GROUPED`), over the overrides that made each run."""
     return [Group(label, members) for label, members in group_by_overrides(runs, run_overrides)]
 
 
