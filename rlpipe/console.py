@@ -76,7 +76,9 @@ class _Console:
             self._reader_gone()
 
     def _reader_gone(self) -> None:
-        os.dup2(os.open(os.devnull, os.O_WRONLY), self.stream.fileno())
+        null = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(null, self.stream.fileno())
+        os.close(null)
 
     def __getattr__(self, name: str) -> Any:  # isatty, fileno, encoding, ...: the stream's
         return getattr(self.stream, name)
