@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import os
 
-from common import load_span, parser, publish_section, section_head, table, time_ars
+from common import load_span, parser, publish_section, script, section_head, table, time_ars
 
 RUNS = [("local", 1), ("local", 2), ("ray", 1), ("ray", 2)]
 
@@ -80,4 +80,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    script(main)

@@ -26,7 +26,7 @@ import os
 import time
 from statistics import median
 
-from common import load_span, parser, publish_section, section_head, table, time_ars
+from common import load_span, parser, publish_section, script, section_head, table, time_ars
 from reference_ars import HP, ARSTrainer
 
 
@@ -152,4 +152,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    script(main)

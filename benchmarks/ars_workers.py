@@ -22,7 +22,7 @@ from functools import partial
 from statistics import median
 
 import torch
-from common import load_span, parser, publish_section, section_head, table
+from common import load_span, parser, publish_section, script, section_head, table
 from torch import nn
 
 from rlpipe import ARSConfig, ARSSearch, EnvConfig, make_env
@@ -171,4 +171,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    script(main)

@@ -19,7 +19,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from common import machine, publish_section, table
+from common import machine, publish_section, script, table
 
 from rlpipe.rundir import RunDir
 
@@ -94,4 +94,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    script(main)

@@ -25,7 +25,7 @@ import tempfile
 from collections import Counter
 from pathlib import Path
 
-from common import load_span, parser, publish_section, read_scalar, section_head, table
+from common import load_span, parser, publish_section, read_scalar, script, section_head, table
 
 FRAMES = {"dqn_cartpole": 20_000, "sac_pendulum": 5_000, "ppo_cartpole": 20_480}
 # (part, substrings of a frame "function (file:line)", or after a ^ its start with the function's
@@ -129,4 +129,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    script(main)

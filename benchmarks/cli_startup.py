@@ -20,7 +20,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from common import busy, machine, publish_section, table
+from common import busy, machine, publish_section, script, table
 
 COMMANDS = {
     "--help": ["-m", "rlpipe", "--help"],
@@ -89,4 +89,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    script(main)

@@ -23,7 +23,7 @@ from functools import partial
 from pathlib import Path
 
 import torch
-from common import machine, publish_section, table
+from common import machine, publish_section, script, table
 from tensordict.nn import TensorDictSequential
 
 from rlpipe import compose_run
@@ -128,4 +128,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    script(main)

@@ -11,7 +11,7 @@ import shlex
 import subprocess
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from contextlib import contextmanager
 from datetime import date
 from functools import partial
@@ -20,9 +20,17 @@ from pathlib import Path
 
 from rlpipe.algos import make_algorithm
 from rlpipe.cli import compose_run
+from rlpipe.console import console_may_close
 from rlpipe.envs import make_env
 from rlpipe.episodes import evaluate
 from rlpipe.runtime import seed_everything
+
+
+def script(main: Callable[[], None]) -> None:
+    """Run a benchmark script's ``main``: a console that closes under it (``| head``) ends
+    nothing, so its table still reaches ``--append``."""
+    with console_may_close():
+        main()
 
 
 @contextmanager

@@ -21,7 +21,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from common import load_span, publish_section, section_head, table
+from common import load_span, publish_section, script, section_head, table
 
 SETTINGS = {"default (threads=auto)": [], "threads=1": ["threads=1"], "threads=2": ["threads=2"]}
 CONDITIONS = ("alone", "beside a CPU-bound process")
@@ -102,4 +102,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    script(main)

@@ -28,7 +28,7 @@ from functools import partial
 from pathlib import Path
 from statistics import median
 
-from common import machine, publish_section, table
+from common import machine, publish_section, script, table
 
 BACKENDS = ("gymnasium", "envpool")
 CONDITIONS = ("alone", "beside a busy core")
@@ -283,4 +283,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    script(main)

@@ -29,7 +29,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from common import busy, machine, publish_section, table
+from common import busy, machine, publish_section, script, table
 
 # frames timed per preset (the preset's own budget is its learning check's)
 FRAMES = {"dqn_cartpole": 20_000, "sac_pendulum": 5_000, "ppo_cartpole": 20_480}
@@ -222,4 +222,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    script(main)

@@ -41,7 +41,7 @@ from functools import partial
 from pathlib import Path
 
 import torch
-from common import busy, machine, publish_section, table
+from common import busy, machine, publish_section, script, table
 
 from rlpipe import DQN, RunDir, Runner, compose_run, load_run, make_env, seed_everything
 from rlpipe.episodes import eval_envs
@@ -169,4 +169,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    script(main)

@@ -24,7 +24,7 @@ import time
 
 import common
 import torch
-from common import first_hit, hit_cells, parser, table, train_with_evals
+from common import first_hit, hit_cells, parser, script, table, train_with_evals
 
 PENDULUM_TARGET = -250.0
 CARTPOLE_TARGET = 50.0
@@ -116,4 +116,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    script(main)

@@ -50,7 +50,7 @@ from functools import partial
 from pathlib import Path
 from typing import NoReturn
 
-from common import compose_run, load_span, parser, publish_section, section_head
+from common import compose_run, load_span, parser, publish_section, script, section_head
 from presets_figure import profile_figure
 from presets_report import machines, profile_series, seed_text, tables
 from presets_runs import PACKAGES, Run, Scheduler, rlpipe_finished, rlpipe_job
@@ -307,4 +307,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    script(main)

@@ -26,7 +26,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from common import machine, publish_section
+from common import machine, publish_section, script
 
 ROOT = Path(importlib.util.find_spec("rlpipe").origin).parent  # the rlpipe being read
 DEFAULT = [
@@ -173,4 +173,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    script(main)

@@ -38,6 +38,7 @@ from common import (
     load_span,
     parser,
     publish_section,
+    script,
     section_head,
     table,
     train_with_evals,
@@ -208,4 +209,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    script(main)

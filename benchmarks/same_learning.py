@@ -22,7 +22,7 @@ import sys
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from common import load_span, parser, publish_section, read_scalar, section_head, table
+from common import load_span, parser, publish_section, read_scalar, script, section_head, table
 
 PRESETS = ["dqn_cartpole", "sac_pendulum", "ppo_cartpole"]
 
@@ -99,4 +99,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    script(main)

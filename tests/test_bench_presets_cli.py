@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import os
 import re
 import shutil
 import subprocess
@@ -27,6 +28,29 @@ def test_a_refused_call_is_one_line_and_writes_nothing(tmp_path) -> None:
     )
     assert proc.returncode == 2 and page.read_text() == "mine\n"
     assert proc.stderr.strip().splitlines()[-1].startswith("presets.py: error: --append publishes")
+
+
+def test_a_closed_console_still_publishes(tmp_path) -> None:
+    """``presets.py ... --append BENCHMARKS.md | head``: the reader gone, the table still lands."""
+    page = tmp_path / "BENCHMARKS.md"
+    page.write_text("## mine\n")
+    results = SCRIPT.parent / "results" / "presets"
+    command = [sys.executable, str(SCRIPT), "--presets", "dqn_cartpole", "--read-only"]
+    read, write = os.pipe()
+    os.close(read)
+    try:
+        done = subprocess.run(
+            [*command, "--out", str(results), "--append", str(page)],
+            stdout=write,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+    finally:
+        os.close(write)
+    assert done.returncode == 0 and "Traceback" not in done.stderr, done.stderr
+    assert (
+        page.read_text().startswith("## mine\n\n## ") and "| `dqn_cartpole` |" in page.read_text()
+    )
 
 
 @pytest.mark.skipif(
