@@ -14,16 +14,15 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torch import nn
-from torchrl.data import ReplayBuffer
 from torchrl.envs import EnvBase
-from torchrl.objectives import LossModule
 
 from rlpipe.algos.collectors import CollectAction, make_collector
+from rlpipe.algos.state import load_parts, save_parts, start_parts
 from rlpipe.config import RUN_KEYS, AlgoConfig, Config, EnvConfig
 from rlpipe.encoders import encoded
 from rlpipe.envs import EnvFactory, Observation, make_env, observation_of
 from rlpipe.envs.backends import backend_of
-from rlpipe.errors import RlpipeError, check
+from rlpipe.errors import RlpipeError
 from rlpipe.models import mlp, object_record, user_network
 from rlpipe.registry import config_class
 
@@ -323,12 +322,11 @@ class EnvAlgorithm(Algorithm):
         return self.collector.batch(min(steps, self._steps))
 
     def state_dict(self) -> dict[str, Any]:
-        state = {name: _save(getattr(self, name)) for name in self.state_attrs}
+        state = save_parts(self, self.state_attrs)
         return {**state, "frames": self.frames, "iterations": self.iterations}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        for name in self.state_attrs:
-            _load(getattr(self, name), state[name])
+        load_parts(self, self.state_attrs, state)
         self.frames = int(state["frames"])
         self.iterations = int(state["iterations"])
         self._restored()
@@ -337,63 +335,7 @@ class EnvAlgorithm(Algorithm):
         """Bring derived state (schedules, collector weights) in line after a load."""
 
     def start_from(self, state: dict[str, Any], parts: Collection[str], parent: Any) -> None:
-        """:meth:`Algorithm.start_from` over :attr:`state_attrs` by kind: modules are weights
-        (a TorchRL loss module's networks, targets and learned parameters such as SAC's α; its
-        coefficients, γ and target entropy stay this config's), an optimizer's state comes with
-        ``"optimizer"`` (its learning rates and other settings stay this config's), a replay
-        buffer with ``"buffer"``; generators stay this run's. Then ``_restored``."""
-        kinds = {name: _kind(getattr(self, name)) for name in self.state_attrs}
-        for part in parts:
-            what = {"optimizer": "optimizer", "buffer": "replay buffer"}[part]
-            check(
-                part in kinds.values(),
-                f"init_{part}=true, but {type(self).__name__} keeps no {what} to start from: "
-                f"drop init_{part}",
-            )
-        for name, kind in kinds.items():
-            part, saved = getattr(self, name), state[name]
-            if kind == "weights":
-                part.load_state_dict(_learned(part, saved))
-            elif kind == "optimizer" and kind in parts:
-                groups = part.param_groups
-                settings = [{k: v for k, v in g.items() if k != "params"} for g in groups]
-                part.load_state_dict(saved)
-                for group, own in zip(part.param_groups, settings):
-                    group.update(own)  # this config's lr, betas, weight decay, ...
-            elif kind == "buffer" and kind in parts:
-                part.load_state_dict(saved)
+        """:meth:`Algorithm.start_from` over :attr:`state_attrs` by kind
+        (:func:`~rlpipe.algos.state.start_parts`), then ``_restored``."""
+        start_parts(self, self.state_attrs, state, parts)
         self._restored()
-
-
-def _kind(part: Any) -> str | None:
-    """What :meth:`EnvAlgorithm.start_from` takes a state attribute for (None: nothing)."""
-    if isinstance(part, torch.optim.Optimizer):
-        return "optimizer"
-    if isinstance(part, ReplayBuffer):
-        return "buffer"
-    return "weights" if isinstance(part, nn.Module) else None
-
-
-def _learned(module: nn.Module, saved: dict[str, Any]) -> dict[str, Any]:
-    """``saved`` (a state dict of ``module``'s kind) with a TorchRL loss module's settings taken
-    from ``module``: every entry outside its networks (``*network*``) that is no parameter."""
-    if not isinstance(module, LossModule):
-        return saved
-    params = dict(module.named_parameters())
-    own = {
-        key: value
-        for key, value in module.state_dict().items()
-        if "network" not in key.split(".")[0] and key not in params
-    }
-    return {**saved, **own}
-
-
-def _save(part: Any) -> Any:
-    return part.get_state() if isinstance(part, torch.Generator) else part.state_dict()
-
-
-def _load(part: Any, state: Any) -> None:
-    if isinstance(part, torch.Generator):
-        part.set_state(state)
-    else:
-        part.load_state_dict(state)
