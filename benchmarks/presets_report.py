@@ -44,11 +44,16 @@ SOLVED_TARGET = 0.8  # and 8 of 10 held-out seeds solved
 
 
 def seed_text(seeds: Sequence[int]) -> str:
-    """``100–109`` for a run of consecutive seeds, else the seeds listed."""
-    seeds = sorted(seeds)
-    if len(seeds) > 2 and seeds == list(range(seeds[0], seeds[-1] + 1)):
-        return f"{seeds[0]}–{seeds[-1]}"
-    return ", ".join(map(str, seeds)) or DASH
+    """The seeds in order, each run of three or more consecutive ones as ``first–last``
+    (``0–9, 90–99``; ``3, 4``)."""
+    runs: list[list[int]] = []
+    for seed in sorted(seeds):
+        if runs and seed == runs[-1][-1] + 1:
+            runs[-1].append(seed)
+        else:
+            runs.append([seed])
+    parts = [f"{r[0]}–{r[-1]}" if len(r) > 2 else ", ".join(map(str, r)) for r in runs]
+    return ", ".join(parts) or DASH
 
 
 def spread(values: Sequence[float], fmt: str) -> str:
@@ -297,6 +302,7 @@ def note(p: Preset, cfg: Config, ours: Side, theirs: Side, with_sb3: bool = True
         normalize = ", VecNormalize(norm_obs=True, norm_reward=False)" if p.sb3_normalize else ""
         text += f"; SB3: {p.sb3_algo}('{p.sb3_policy}', {kwargs}{normalize})"
     text += f"; **short of 8 of 10 held-out seeds**: {p.short_of}" if short(p, ours) else ""
+    text += f"; {p.more_seeds}" if p.more_seeds else ""
     text += (
         f"; **time to the target above {SPEED_TARGET:g}× SB3's**: {p.slow}"
         if slow(p, ours, theirs)

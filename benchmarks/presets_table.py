@@ -51,6 +51,8 @@ class Preset:
     short_of: str = ""
     # where its time to the target stays above SPEED_TARGET x SB3's: why, and what was tried
     slow: str = ""
+    # seeds run after tuning besides the held-out ones, as a check (they are in tuned_on too)
+    more_seeds: str = ""
 
     def normalised(self, score: float) -> float:
         """``score`` on the scale where the random policy is 0 and the target 1."""

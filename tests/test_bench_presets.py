@@ -29,6 +29,14 @@ def bench():
         sys.path.remove(str(BENCHMARKS))
 
 
+def test_seeds_read_as_runs(bench) -> None:
+    seed_text = bench.report.seed_text
+    assert seed_text(range(100, 110)) == "100–109"
+    assert seed_text([*range(90, 100), *range(10)]) == "0–9, 90–99"
+    assert seed_text([9, 1, 5, 6, 7]) == "1, 5–7, 9" and seed_text([3, 4]) == "3, 4"
+    assert seed_text([]) == "–"
+
+
 def test_published_runs_default_to_the_held_out_seeds(bench) -> None:
     table = bench.presets_table
     chosen = [table.PRESETS["dqn_cartpole"], table.PRESETS["sac_bipedal"]]
