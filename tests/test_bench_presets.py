@@ -239,6 +239,10 @@ def test_a_preset_short_of_8_of_10_says_so_in_its_row_and_note(bench) -> None:
     row = report.summary_row(short, cfg, ours, none, "M1")
     assert dict(zip(report.HEADERS, row))["solved"] == "1/1"
     assert "short of" not in report.note(short, cfg, ours, none)
+    # seeds run after tuning as a check: said in the note, whatever the held-out runs gave
+    more = bench.presets_table.Preset(**{**vars(preset), "more_seeds": "seeds 90–99: 6 of 10"})
+    assert report.note(more, cfg, ours, none).endswith("; seeds 90–99: 6 of 10")
+    assert "90–99" not in report.note(preset, cfg, ours, none)
 
 
 def test_a_section_without_sb3s_side_leaves_its_settings_out_of_the_notes(bench) -> None:
