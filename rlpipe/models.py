@@ -33,14 +33,23 @@ def mlp(
     out_features: int,
     hidden_sizes: Sequence[int],
     activation: type[nn.Module] = nn.ReLU,
+    layer_norm: bool = False,
 ) -> nn.Module:
     """A multi-layer perceptron (ReLU unless ``activation``) with the given hidden layer sizes
-    (may be empty: linear)."""
+    (may be empty: linear); ``layer_norm``: a LayerNorm after each hidden layer, before its
+    activation."""
+    norm: dict[str, Any] = {}
+    if layer_norm and hidden_sizes:
+        norm = {
+            "norm_class": nn.LayerNorm,
+            "norm_kwargs": [{"normalized_shape": n} for n in hidden_sizes],
+        }
     return MLP(
         in_features=in_features,
         out_features=out_features,
         num_cells=list(hidden_sizes),
         activation_class=activation,
+        **norm,
     )
 
 

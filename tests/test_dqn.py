@@ -38,6 +38,20 @@ def test_is_an_algorithm_with_notebook_network(dqn):
     assert dqn.cfg.loss == "smooth_l1"
 
 
+def test_layer_norm_follows_each_hidden_layer_of_the_q_network_and_trains():
+    cfg = DQNConfig(**SMALL, hidden_sizes=[16, 8], layer_norm=True)
+    algo = DQN(partial(make_env, EnvConfig(num_envs=2), seed=0), cfg)
+    try:
+        kinds = [type(m).__name__ for m in algo.policy.modules() if not list(m.children())]
+        layers = ["Linear", "LayerNorm", "ReLU", "Linear", "LayerNorm", "ReLU", "Linear"]
+        assert kinds == [*layers, "QValueModule"]
+        for _ in range(3):  # past learning_starts: gradient steps through the norms
+            metrics = algo.train_step()
+        assert math.isfinite(metrics["train/loss"])
+    finally:
+        algo.close()
+
+
 def test_greedy_policy_outputs_actions(dqn):
     td = make_env(EnvConfig(num_envs=5)).reset()
     out = dqn.policy(td)

@@ -113,10 +113,13 @@ def test_continuous_reinforce_network_gives_a_mean_and_a_std_per_dimension():
         (dict(cfg={"hidden": 3}), "algo.network._target_ must name"),
         (dict(cfg={"_target_": "builtins.dict"}), "must build a torch nn.Module, got dict"),
         (dict(cfg=SPEC, network=Tagged(4, 2)), "both as an object and as algo.network"),
+        (dict(cfg=SPEC, layer_norm=True), "algo.layer_norm shapes dqn's default network"),
+        (dict(network=Tagged(4, 2), layer_norm=True), "put the LayerNorm in your network"),
     ],
 )
 def test_bad_networks_are_one_clear_line(kwargs, message):
-    cfg = DQNConfig(**{**SMALL_DQN.__dict__, "network": kwargs.pop("cfg", {})})
+    given = {"network": kwargs.pop("cfg", {}), "layer_norm": kwargs.pop("layer_norm", False)}
+    cfg = DQNConfig(**{**SMALL_DQN.__dict__, **given})
     with pytest.raises(RlpipeError) as err:
         DQN(CARTPOLE, cfg, **kwargs)
     assert message in str(err.value) and "\n" not in str(err.value)

@@ -22,7 +22,7 @@ from rlpipe.config import RUN_KEYS, AlgoConfig, Config, EnvConfig
 from rlpipe.encoders import encoded
 from rlpipe.envs import EnvFactory, Observation, make_env, observation_of
 from rlpipe.envs.backends import backend_of
-from rlpipe.errors import RlpipeError
+from rlpipe.errors import RlpipeError, check
 from rlpipe.models import mlp, object_record, user_network
 from rlpipe.registry import config_class
 
@@ -248,10 +248,16 @@ class EnvAlgorithm(Algorithm):
         raise NotImplementedError
 
     def network(
-        self, in_features: int | tuple[int, ...], out_features: int, outputs: str
+        self,
+        in_features: int | tuple[int, ...],
+        out_features: int,
+        outputs: str,
+        *,
+        layer_norm: bool = False,
     ) -> nn.Module:
         """The user's network (``network=`` or ``cfg.network``, checked to map observations of
-        ``in_features``, a size or a shape, to ``out_features``), else :meth:`default_network`."""
+        ``in_features``, a size or a shape, to ``out_features``), else :meth:`default_network`
+        (``layer_norm``: with a LayerNorm after each hidden layer; refused beside a user's)."""
         given = user_network(
             self.user_network,
             self.cfg.network,
@@ -260,22 +266,32 @@ class EnvAlgorithm(Algorithm):
             outputs=outputs,
         )
         if given is not None:
+            check(
+                not layer_norm,
+                f"algo.layer_norm shapes {self.cfg.name}'s default network, not one you bring "
+                "(put the LayerNorm in your network, or drop algo.layer_norm)",
+            )
             return given
-        return self.default_network(in_features, out_features)
+        return self.default_network(in_features, out_features, layer_norm=layer_norm)
 
     def default_network(
         self,
         in_features: int | tuple[int, ...],
         out_features: int,
         hidden_sizes: list[int] | None = None,
+        *,
+        layer_norm: bool = False,
     ) -> nn.Module:
-        """An MLP (``hidden_sizes``, default ``cfg.hidden_sizes``) on a flat observation of
-        ``in_features``; on any other, the MLP after the observation's encoder
-        (:func:`rlpipe.encoders.encoded`: a CNN for images, one per key for Dict keys)."""
+        """An MLP (``hidden_sizes``, default ``cfg.hidden_sizes``; ``layer_norm``: see
+        :func:`rlpipe.models.mlp`) on a flat observation of ``in_features``; on any other, the
+        MLP after the observation's encoder (:func:`rlpipe.encoders.encoded`: a CNN for images,
+        one per key for Dict keys)."""
         sizes = self.cfg.hidden_sizes if hidden_sizes is None else hidden_sizes
         if self.observation.flat:
-            return mlp(int(in_features), out_features, sizes, self.activation)
-        return encoded(self.observation, lambda n: mlp(n, out_features, sizes, self.activation))
+            return mlp(int(in_features), out_features, sizes, self.activation, layer_norm)
+        return encoded(
+            self.observation, lambda n: mlp(n, out_features, sizes, self.activation, layer_norm)
+        )
 
     def make_collector(
         self,

@@ -68,10 +68,14 @@ class DQNConfig(OffPolicyConfig):
     """DQN hyper-parameters; the defaults are the workshop notebook's."""
 
     buffer_keys: ClassVar[tuple[str, ...]] = ("buffer_size", "n_steps")  # n-step transitions
+    architecture: ClassVar[tuple[str, ...]] = ("hidden_sizes", "layer_norm", "network")
 
     name: str = "dqn"
     total_frames: int | None = 60_000  # DQN has no budget of its own: the run's length
     hidden_sizes: list[int] = checked([128, 128], "sizes")
+    # a LayerNorm after each hidden layer of the default Q-network (keeps TD targets from
+    # diverging: Gallici et al. 2024, https://arxiv.org/abs/2407.04811)
+    layer_norm: bool = False
     lr: float = checked(1e-4, "positive")
     # null: a constant lr; a number: lr annealed linearly to it over algo.total_frames
     lr_end: float | None = None

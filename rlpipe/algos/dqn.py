@@ -99,7 +99,12 @@ class DQN(OffPolicy):
             )
         spec = env.action_spec_unbatched.to(self.device)
         n = spec.space.n
-        net = self.network(self.observation.in_features, n, f"one Q-value per action ({n})")
+        net = self.network(
+            self.observation.in_features,
+            n,
+            f"one Q-value per action ({n})",
+            layer_norm=cfg.layer_norm,
+        )
         net = net.to(self.device)
         # TensorModule: a TensorDictModule without its per-call lookup (see its docstring)
         self.policy = QValueActor(TensorModule(net, ["observation"], ["action_value"]), spec=spec)
