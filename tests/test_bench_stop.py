@@ -104,16 +104,18 @@ def test_a_run_asked_to_stop_gets_one_sigint_then_a_kill_and_none_starts_after(
 
 def test_the_stop_signals_raise_stop_and_leave_an_ignored_sigint_ignored(stop_module):
     before = signal.getsignal(signal.SIGTERM)
-    with stop_module.stop_signals():
-        with pytest.raises(stop_module.Stop) as stop:
-            os.kill(os.getpid(), signal.SIGTERM)
-            time.sleep(5)
-        for signum in (signal.SIGINT, signal.SIGTERM):  # from the first Stop on, another kills
-            assert signal.getsignal(signum) is stop_module._kill_runs
-    assert stop.value.signum == signal.SIGTERM and str(stop.value) == "SIGTERM"
-    assert signal.getsignal(signal.SIGTERM) is before
-    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # SIGINT as a terminal leaves it (pytest started as a background job inherits it ignored)
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
+        with stop_module.stop_signals():
+            with pytest.raises(stop_module.Stop) as stop:
+                os.kill(os.getpid(), signal.SIGTERM)
+                time.sleep(5)
+            for signum in (signal.SIGINT, signal.SIGTERM):  # from the first Stop on, another kills
+                assert signal.getsignal(signum) is stop_module._kill_runs
+        assert stop.value.signum == signal.SIGTERM and str(stop.value) == "SIGTERM"
+        assert signal.getsignal(signal.SIGTERM) is before
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
         with stop_module.stop_signals():
             assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
     finally:
