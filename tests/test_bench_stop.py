@@ -133,7 +133,15 @@ def test_a_stopped_benchmark_ends_its_runs_saved_with_one_line(tmp_path, how):
     out = tmp_path / "runs"
     command = [sys.executable, str(SCRIPT), "--presets", "dqn_cartpole", "--seeds", "100"]
     command += ["--frames", "1000000", "--sb3", "--jobs", "2", "--out", str(out)]
-    bench = subprocess.Popen(command, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    # SIGINT at its default in the benchmark, as a terminal's shell leaves it (a background
+    # pytest would hand it down ignored, and an ignored SIGINT stays ignored there)
+    bench = subprocess.Popen(
+        command,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
     log = out / "dqn_cartpole" / "seed100" / "rlpipe.log"
     deadline = time.monotonic() + 120
     while "env backend" not in (log.read_text() if log.is_file() else ""):
