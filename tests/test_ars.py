@@ -174,6 +174,7 @@ def test_pendulum_preset_is_a_biased_mlp_run_for_its_whole_frame_budget():
     cfg = compose_config("+experiment=ars_pendulum")
     assert isinstance(cfg.algo, ARSConfig) and cfg.env.id == PENDULUM.id
     assert cfg.algo.policy == "mlp" and not cfg.algo.reward_clip
+    assert cfg.algo.bound_penalty > 0  # raw outputs far past the torque bounds cost
     assert cfg.algo.workers == 0  # all cores by default
     policy, normalizer = make_ars_policy(make_env(cfg.env), cfg.algo)
     linears = [layer for layer in policy[1].module if isinstance(layer, nn.Linear)]
@@ -291,6 +292,11 @@ def test_divergence_hint_names_ars_settings():
     assert keys and set(keys) <= {field.name for field in fields(ARSConfig)}
 
 
+def test_bound_penalty_is_refused_for_discrete_actions():
+    with pytest.raises(RlpipeError, match=r"^algo.bound_penalty \(0.1\) applies to continuous"):
+        ARS(partial(make_env, CARTPOLE), ARSConfig(bound_penalty=0.1, workers=1))
+
+
 def test_non_flat_observation_is_rejected(image_env_id):
     with pytest.raises(RlpipeError, match="flat vector observations"):
         ARS(partial(make_env, EnvConfig(id=image_env_id)), ARSConfig(workers=1))
@@ -331,6 +337,7 @@ BAD = [
     (["algo.noise_end=0.05"], "algo.noise_end must be null or in (0, algo.noise (0.03)], got 0.05"),
     (["algo.reward_clip=-1"], "algo.reward_clip must be true, false or a number > 0, got -1"),
     (["algo.starts=0"], "algo.starts must be"),
+    (["algo.bound_penalty=-0.1"], "algo.bound_penalty must be a finite number >= 0, got -0.1"),
     (["algo.starts_until=1"], "algo.starts_until must be in (0, 1)"),
     (
         ["algo.reward_clip=false", "algo.reward_clip_end=10"],

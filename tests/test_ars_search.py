@@ -1,5 +1,6 @@
 """ARS's search and rollouts outside the runner: solving CartPole alone, the state dict that
-resumes it exactly, episode ends at the env's time limit, reward clipping, results as arrays."""
+resumes it exactly, episode ends at the env's time limit, reward clipping, the penalty on
+outputs past the bounds, results as arrays."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from dataclasses import fields
 from functools import partial
 
 import gymnasium as gym
+import pytest
 import torch
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from test_ars import CARTPOLE, PENDULUM
@@ -20,6 +22,7 @@ from rlpipe.algos.ars import ARSSearch, make_ars_policy
 from rlpipe.algos.ars.rollout import rollout
 from rlpipe.envs import make_env
 from rlpipe.episodes import evaluate
+from rlpipe.errors import RlpipeError
 from rlpipe.normalizer import Normalizer
 
 
@@ -90,6 +93,38 @@ def test_training_rewards_are_the_envs_own_unless_clipped():
     clipped = rollout(policy, envs, flat, [0, 1, 2, 3], max_steps=1000, reward_clip=1.0)
     assert torch.equal(clipped.raw_returns, own.raw_returns)
     assert (clipped.returns >= -200).all() and (own.raw_returns < -200).all()
+
+
+def constant_outputs(env, outputs: list[float]):
+    """An ARS policy whose network outputs a constant (its bias) and one member per output."""
+    policy, _ = make_ars_policy(env, ARSConfig(), network=nn.Linear(3, 1))
+    flat = torch.zeros(len(outputs), 4)  # weight [1, 3] (zero), then the bias
+    flat[:, 3] = torch.tensor(outputs)
+    return policy, flat
+
+
+def test_bound_penalty_takes_the_outputs_past_the_bounds_off_the_training_returns():
+    """Raw torques 0, 1.5, 3 and -5 against Pendulum's bound 2: the last two pay 0.1 x 1 and
+    0.1 x 3 a step over 200 steps; the env's returns stay the env's."""
+    policy, flat = constant_outputs(make_env(PENDULUM), [0.0, 1.5, 3.0, -5.0])
+    envs = [gym.make(PENDULUM.id) for _ in range(4)]
+    own = rollout(policy, envs, flat, [0, 1, 2, 3], max_steps=1000)
+    penalised = rollout(policy, envs, flat, [0, 1, 2, 3], max_steps=1000, bound_penalty=0.1)
+    assert torch.equal(penalised.raw_returns, own.raw_returns)
+    torch.testing.assert_close(
+        own.returns - penalised.returns, torch.tensor([0, 0, 20, 60.0]).double()
+    )
+
+
+def test_bound_penalty_is_checked():
+    policy, _ = make_ars_policy(make_env(PENDULUM), ARSConfig())
+    factory = partial(make_env, PENDULUM)
+    with pytest.raises(RlpipeError, match="^bound_penalty must be a finite number >= 0, got -1"):
+        ARSSearch(policy, factory, bound_penalty=-1)
+    bare = TensorDictModule(nn.Linear(3, 1), in_keys=["observation"], out_keys=["action"])
+    with pytest.raises(RlpipeError, match="^bound_penalty needs a policy that writes 'policy_out"):
+        ARSSearch(bare, factory, bound_penalty=0.1)
+    ARSSearch(bare, factory)  # no penalty: any policy
 
 
 def test_rollout_result_travels_as_numpy_arrays():

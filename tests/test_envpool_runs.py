@@ -12,6 +12,7 @@ import pytest
 import torch
 import yaml
 from conftest import TINY
+from test_ars_search import constant_outputs
 from test_envpool import needs_envpool
 from torch.nn.utils import parameters_to_vector
 
@@ -67,6 +68,20 @@ def test_pool_rollouts_match_gymnasium_rollouts_in_distribution():
         abs(ours.lengths.double().mean() - theirs.lengths.double().mean())
         < 0.3 * theirs.lengths.double().mean()
     )
+
+
+@needs_envpool
+def test_pool_rollouts_take_the_bound_penalty_off_the_training_returns():
+    """As on gymnasium (tests/test_ars_search.py): raw torques 3 and -5 pay 0.1 x 1 and 0.1 x 3
+    a step past Pendulum's bound 2, over its 200 steps."""
+    pendulum = make_env(EnvConfig(id="Pendulum-v1", backend="envpool"), num_envs=3)
+    policy, flat = constant_outputs(pendulum, [1.5, 3.0, -5.0])
+    env = envpool_env(pendulum)
+    own = pool_rollout(policy, env, flat, [0, 1, 2], max_steps=1000)
+    penalised = pool_rollout(policy, env, flat, [0, 1, 2], max_steps=1000, bound_penalty=0.1)
+    assert torch.equal(penalised.raw_returns, own.raw_returns)
+    gap = (own.returns - penalised.returns).float()
+    torch.testing.assert_close(gap, torch.tensor([0, 20, 60.0]))
 
 
 @needs_envpool

@@ -19,7 +19,15 @@ ARS_POLICIES = ("linear", "mlp")
 ARS_BACKENDS = ("local", "ray")
 # the parameters that ARSSearch takes and ARSConfig holds under the same names, checked by
 # check_search_params for both
-SEARCH_PARAMS = ("num_directions", "num_best", "step_size", "noise", "workers", "backend")
+SEARCH_PARAMS = (
+    "num_directions",
+    "num_best",
+    "step_size",
+    "noise",
+    "bound_penalty",
+    "workers",
+    "backend",
+)
 
 
 @dataclass
@@ -224,7 +232,7 @@ def check_search_params(params: Any, prefix: str) -> None:
         prefix,
         at_least_one=("num_directions",),
         positive=("step_size", "noise"),
-        non_negative=("workers",),
+        non_negative=("workers", "bound_penalty"),
     )
     check(
         1 <= params.num_best <= params.num_directions,
@@ -273,6 +281,9 @@ class ARSConfig(AlgoConfig):
     reward_clip_end: float | None = None
     reward_clip_from: float = 0.0  # the fraction of the run before the bound starts to move
     alive_bonus_offset: float = 0.0  # added to every training reward (RL Zoo: -0.1 for Bipedal)
+    # continuous actions: c x the sum of |raw output - clamped action| taken off every training
+    # reward, so that the search stays where a perturbation changes the actions (0: none)
+    bound_penalty: float = 0.0
     # several starts searched in turn, the worse half dropped at each of ceil(log2(starts))
     # rungs, one left after the first starts_until of the run (rlpipe/algos/ars/starts.py)
     starts: int = checked(1, "at_least_one")

@@ -20,7 +20,7 @@ from rlpipe.algos.base import Algorithm, Metrics, annealed
 from rlpipe.algos.configs import SEARCH_PARAMS, ARSConfig, RayConfig
 from rlpipe.console import say
 from rlpipe.envs import envpool_env, episode_limit, is_discrete, num_actions, observation_size
-from rlpipe.errors import RlpipeError
+from rlpipe.errors import RlpipeError, check
 from rlpipe.models import ArgmaxAction, ClampAction, mlp, user_network
 from rlpipe.normalizer import Normalizer
 
@@ -64,6 +64,11 @@ class ARS(Algorithm):
         probe = env_factory(num_envs=1, vectorization="sync")
         try:
             self.policy, normalizer = make_ars_policy(probe, cfg, self.user_network)
+            check(
+                not (cfg.bound_penalty and is_discrete(probe)),
+                f"algo.bound_penalty ({cfg.bound_penalty}) applies to continuous (Box) actions; "
+                "this env's actions are discrete: set algo.bound_penalty=0",
+            )
             pooled, steps = envpool_env(probe) is not None, episode_limit(probe)
         finally:
             probe.close()

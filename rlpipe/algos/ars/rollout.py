@@ -38,6 +38,7 @@ def rollout(
     max_steps: int,
     reward_offset: float = 0.0,
     reward_clip: float | None = None,
+    bound_penalty: float = 0.0,
 ) -> RolloutResult:
     """One episode per member: ``envs[i]``, reset with ``seeds[i]``, runs parameters ``flat[i]``.
 
@@ -45,7 +46,8 @@ def rollout(
     :class:`PopulationPolicy` on a plain dict of NumPy arrays: a TensorDict per step would
     cost more than the policy itself); finished copies are not stepped again. An episode ends
     at ``max_steps`` or the env's own time limit, whichever comes first.
-    Training rewards are ``clip(r + reward_offset, -reward_clip, reward_clip)``.
+    Training rewards are ``clip(r + reward_offset, -reward_clip, reward_clip)``, less
+    ``bound_penalty × Σ|policy_output - action|`` a step (raw outputs past the action bounds).
     """
     cpu = time.process_time()
     size = len(envs)
@@ -59,10 +61,10 @@ def rollout(
     low, high = (-math.inf, math.inf) if reward_clip is None else (-reward_clip, reward_clip)
     running = list(range(size))  # the member of each row of obs: those still in their episode
     forward = PopulationPolicy(policy, flat)
-    seen = []
+    seen, penalties = [], np.zeros(size)
     for _ in range(max_steps):
         seen.append(obs)
-        actions = forward.outputs({"observation": obs})["action"]
+        actions = _act(forward, obs, running, penalties, bound_penalty)
         obs, still = np.empty_like(obs), []
         for row, (i, action) in enumerate(zip(running, actions)):
             obs[row], reward, terminated, truncated, _ = steps[i](action)
@@ -76,7 +78,7 @@ def rollout(
         if len(still) < len(running):  # rows (and parameters) of finished members drop out
             obs, running = obs[still], [running[row] for row in still]
             forward = PopulationPolicy(policy, flat[running])
-    return _result(returns, raw_returns, lengths, cpu, seen)
+    return _result(np.subtract(returns, penalties).tolist(), raw_returns, lengths, cpu, seen)
 
 
 @torch.inference_mode()
@@ -89,6 +91,7 @@ def pool_rollout(
     max_steps: int,
     reward_offset: float = 0.0,
     reward_clip: float | None = None,
+    bound_penalty: float = 0.0,
 ) -> RolloutResult:
     """:func:`rollout` on EnvPool: one episode per member on a fresh pool of ``len(flat)``
     copies of ``env``'s env (:meth:`EnvPoolEnv.make_pool`), copy ``i`` seeded ``seeds[i]``.
@@ -109,10 +112,10 @@ def pool_rollout(
         low, high = (-math.inf, math.inf) if reward_clip is None else (-reward_clip, reward_clip)
         running = pool.all_env_ids  # the member of each row of obs, ascending
         forward = PopulationPolicy(policy, flat)
-        seen = []
+        seen, penalties = [], np.zeros(size)
         for _ in range(max_steps):
             seen.append(obs)
-            actions = forward.outputs({"observation": obs})["action"]
+            actions = _act(forward, obs, running, penalties, bound_penalty)
             step = pool.step(actions, env_id=running)
             order = np.argsort(step[4]["env_id"])  # the rows in member order
             obs, reward, terminated, truncated = (part[order] for part in step[:4])
@@ -127,7 +130,24 @@ def pool_rollout(
                 forward = PopulationPolicy(policy, flat[running])
     finally:
         pool.close()
+    returns -= penalties
     return _result(returns.tolist(), raw_returns.tolist(), lengths.tolist(), cpu, seen)
+
+
+def _act(
+    forward: PopulationPolicy,
+    obs: np.ndarray,
+    running: Any,
+    penalties: np.ndarray,
+    bound_penalty: float,
+) -> np.ndarray:
+    """The actions of the ``running`` members for ``obs``; with a ``bound_penalty``, each one's
+    ``bound_penalty × Σ|policy_output - action|`` is added to its ``penalties``."""
+    outputs = forward.outputs({"observation": obs})
+    if bound_penalty:
+        excess = np.abs(outputs["policy_output"] - outputs["action"]).sum(-1)
+        penalties[running] += bound_penalty * excess
+    return outputs["action"]
 
 
 def _result(
@@ -151,7 +171,7 @@ def _result(
 class RolloutResult:
     """Per-member returns of one population rollout and the statistics of what it observed."""
 
-    returns: torch.Tensor  # shaped (offset, clipped) returns, what the update ranks
+    returns: torch.Tensor  # shaped (offset, clipped, penalised) returns, what the update ranks
     raw_returns: torch.Tensor  # the env's own returns
     lengths: torch.Tensor
     cpu_seconds: float  # CPU time of the process that rolled out

@@ -15,7 +15,7 @@ from torch.nn.utils import parameters_to_vector, vector_to_parameters
 from rlpipe.algos.ars.backends import Backend, start_backend
 from rlpipe.algos.configs import check_search_params
 from rlpipe.envs import EnvFactory
-from rlpipe.errors import check_fields
+from rlpipe.errors import check, check_fields
 from rlpipe.normalizer import Normalizer
 
 __all__ = ["ARSSearch", "ars_update"]
@@ -56,6 +56,11 @@ class ARSSearch:
             :meth:`step`: set them between steps to anneal them (the :class:`rlpipe.algos.ars.ARS`
             runner does, for ``algo.step_size_end``, ``algo.noise_end`` and
             ``algo.reward_clip_end``).
+        bound_penalty: c (>= 0): ``c × Σ|policy_output - action|`` is taken off every step's
+            training reward, where ``policy_output`` is the policy's raw output and ``action``
+            that output clamped into the action bounds, so that the search keeps away from
+            outputs far past the bounds (a bang-bang policy that a perturbation hardly
+            changes). Continuous actions only. Default 0.0: none.
         normalizer: the :class:`Normalizer` inside ``policy`` whose statistics the search
             updates after every iteration (below). Default None: no statistics are kept.
         workers: ``"local"``: processes rolling out the members in chunks (1, the default: all
@@ -72,10 +77,10 @@ class ARSSearch:
             Default 0.
 
     A bad ``num_directions``, ``num_best``, ``step_size``, ``noise``, ``max_steps``,
-    ``workers`` or ``backend`` raises :class:`rlpipe.RlpipeError` naming it. The backend (env
-    copies, worker processes or actors) starts with the first :meth:`step`, or :meth:`start`:
-    a search built only to hold its policy, or to load a state, starts nothing. :meth:`close`
-    stops it.
+    ``bound_penalty``, ``workers`` or ``backend`` raises :class:`rlpipe.RlpipeError` naming
+    it. The backend (env copies, worker processes or actors) starts with the first
+    :meth:`step`, or :meth:`start`: a search built only to hold its policy, or to load a state,
+    starts nothing. :meth:`close` stops it.
 
     The normaliser (ARS V2) goes in two places, as one and the same object: as a module inside
     ``policy``, ahead of the layers that read its output (so that every rollout standardises
@@ -119,6 +124,7 @@ class ARSSearch:
         max_steps: int = 1000,
         reward_offset: float = 0.0,
         reward_clip: float | None = None,
+        bound_penalty: float = 0.0,
         normalizer: Normalizer | None = None,
         workers: int = 1,
         backend: str = "local",
@@ -130,12 +136,22 @@ class ARSSearch:
         self.num_best = num_directions if num_best is None else num_best
         self.step_size, self.noise, self.reward_clip = step_size, noise, reward_clip
         self.max_steps, self.workers, self.backend = max_steps, workers, backend
+        self.bound_penalty = bound_penalty
         check_search_params(self, "")
         check_fields(self, "", at_least_one=("max_steps",))
+        check(
+            not bound_penalty or {"policy_output", "action"} <= set(policy.out_keys),
+            "bound_penalty needs a policy that writes 'policy_output' (its raw outputs) and "
+            "'action' (them clamped into the bounds), as make_ars_policy's does",
+        )
         self.policy, self.normalizer = policy, normalizer
         self.generator = torch.Generator().manual_seed(seed)
         self.iterations = 0
-        options = dict(max_steps=max_steps, reward_offset=reward_offset)
+        options = {
+            "max_steps": max_steps,
+            "reward_offset": reward_offset,
+            "bound_penalty": bound_penalty,
+        }
         self._start_backend = partial(
             start_backend,
             policy,
