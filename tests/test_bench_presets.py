@@ -3,6 +3,7 @@ up by hand and BENCHMARKS.md's section replacement (the command line: test_bench
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import sys
 import threading
@@ -177,7 +178,8 @@ def test_a_ratio_over_runs_of_different_days_says_so(bench) -> None:
 
 
 def test_the_row_of_a_preset(bench) -> None:
-    preset = bench.presets_table.PRESETS["dqn_cartpole"]
+    # without its note on falling short: the row's own cells, not the mark the note adds
+    preset = dataclasses.replace(bench.presets_table.PRESETS["dqn_cartpole"], short_of="")
     report = bench.report
     ours = report.Side(
         preset,
