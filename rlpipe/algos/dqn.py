@@ -120,6 +120,7 @@ class DQN(OffPolicy):
             action_space=spec,
         )
         self.loss.make_value_estimator(gamma=cfg.gamma)
+        self.loss.to(self.device)  # the estimator's γ and the loss's buffers: CPU until now
         self.target_updater = (  # tau 1: copy (TorchRL's SoftUpdate wants tau <= 0.5)
             HardUpdate(self.loss, value_network_update_interval=0)  # 0: copy at every step()
             if cfg.tau == 1.0

@@ -26,16 +26,20 @@ _EPS = torch.finfo(torch.float32).eps
 
 
 def normalized_returns(batch: TensorDictBase, gamma: float) -> torch.Tensor:
-    """Discounted returns of concatenated whole episodes, normalised within each episode."""
+    """Discounted returns of concatenated whole episodes, normalised within each episode.
+
+    The per-episode sums run on the CPU: on CUDA, ``bincount`` with weights adds atomically in
+    no fixed order, and two runs with one seed would part ways."""
     done = batch["next", "done"]
-    returns = reward2go(batch["next", "reward"], done, gamma).squeeze(-1)
-    done = done.squeeze(-1).long()
+    on_device = reward2go(batch["next", "reward"], done, gamma).squeeze(-1)
+    returns = on_device.cpu()
+    done = done.squeeze(-1).long().cpu()
     episode = torch.cumsum(done, 0) - done  # 0, 0, ..., 1, 1, ...: which episode each frame is
     counts = torch.bincount(episode).to(returns.dtype)
     mean = torch.bincount(episode, returns) / counts
     centered = returns - mean[episode]
     var = torch.bincount(episode, centered.square()) / (counts - 1).clamp(min=1)
-    return centered / (var.sqrt()[episode] + _EPS)
+    return (centered / (var.sqrt()[episode] + _EPS)).to(on_device.device)
 
 
 class Stopped(Exception):

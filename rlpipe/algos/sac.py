@@ -105,6 +105,7 @@ class SAC(OffPolicy):
             deactivate_vmap=True,  # the two critics in a loop: cheaper than torch.vmap on CPU
         )
         self.loss.make_value_estimator(gamma=cfg.gamma)
+        self.loss.to(self.device)  # the estimator's γ and the loss's buffers: CPU until now
         self.target_updater = ForeachSoftUpdate(self.loss, tau=cfg.tau)
         self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=cfg.lr, fused=True)
         self._actor = inner_network(self.policy).module
