@@ -57,18 +57,24 @@ def env_threads(threads: int | str) -> int:
 
 
 def rng_state() -> dict[str, Any]:
-    """Python's, NumPy's and torch's global generator states, as checkpoint-safe containers."""
+    """Python's, NumPy's and torch's global generator states (the CUDA devices' too, once CUDA
+    is in use: draws on a CUDA device come from them), as checkpoint-safe containers."""
     kind, keys, pos, has_gauss, cached = np.random.get_state()
-    return {
+    state = {
         "python": random.getstate(),
         "numpy": [kind, torch.from_numpy(keys.astype(np.int64)), pos, has_gauss, cached],
         "torch": torch.get_rng_state(),
     }
+    if torch.cuda.is_initialized():  # never initialises CUDA for a CPU run
+        state["cuda"] = torch.cuda.get_rng_state_all()
+    return state
 
 
 def set_rng_state(state: dict[str, Any]) -> None:
-    """Restore what :func:`rng_state` captured."""
+    """Restore what :func:`rng_state` captured (CUDA's on the devices this machine has)."""
     random.setstate(state["python"])
     kind, keys, pos, has_gauss, cached = state["numpy"]
     np.random.set_state((kind, keys.numpy().astype(np.uint32), pos, has_gauss, cached))
     torch.set_rng_state(state["torch"])
+    if state.get("cuda") and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda"][: torch.cuda.device_count()])

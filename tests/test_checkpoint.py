@@ -7,6 +7,7 @@ import torch
 
 from rlpipe.checkpoint import UnsafeCheckpoint, load_checkpoint, save_checkpoint
 from rlpipe.rundir import RunDir
+from rlpipe.runtime import rng_state, set_rng_state
 
 
 def test_save_load_and_keep_last_k(tmp_path):
@@ -51,3 +52,23 @@ def test_pickled_objects_are_refused(tmp_path):
     torch.save({"x": _Evil()}, path)
     with pytest.raises(UnsafeCheckpoint, match="refusing checkpoint .*evil.pt"):
         load_checkpoint(path)
+
+
+def test_the_rng_state_carries_cudas_generators_once_cuda_is_in_use(tmp_path, monkeypatch):
+    """Draws on a CUDA device (DQN's ε-greedy coin, for one) come from CUDA's generators: a
+    resumed CUDA run draws on from where it stopped only if the checkpoint holds them. A CPU run
+    (CUDA not initialised) neither stores nor initialises them. Fakes stand in for CUDA here;
+    tests/test_faults.py's DQN resumes check it on a GPU machine."""
+    assert "cuda" not in rng_state() or torch.cuda.is_initialized()
+    generators = [torch.arange(8, dtype=torch.uint8), torch.arange(8, 16, dtype=torch.uint8)]
+    restored = []
+    monkeypatch.setattr(torch.cuda, "is_initialized", lambda: True)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)  # resumed on a smaller machine
+    monkeypatch.setattr(torch.cuda, "get_rng_state_all", lambda: [g.clone() for g in generators])
+    monkeypatch.setattr(torch.cuda, "set_rng_state_all", restored.extend)
+    run = RunDir(tmp_path)
+    with run.session(None, frames=0, keep=1):
+        run.save_checkpoint({"rng": rng_state()}, 1)
+    set_rng_state(load_checkpoint(run.checkpoints()[-1])["rng"])
+    assert len(restored) == 1 and torch.equal(restored[0], generators[0])
