@@ -106,16 +106,17 @@ class TD3(OffPolicy):
         critic = mlp(n_obs + size, 1, cfg.hidden_sizes)  # Q(s, a): TorchRL's MLP concatenates
         low, high = (bound.to(self.device) for bound in (spec.space.low, spec.space.high))
         half = (high - low) / 2
-        self.loss = TD3Loss(
-            self.policy,
-            TensorModule(critic, ["observation", "action"], ["state_action_value"]),
-            action_spec=spec,
-            policy_noise=cfg.target_noise * half,  # TorchRL's noise is in action units
-            noise_clip=cfg.target_noise_clip * half,
-            loss_function="l2",
-            deactivate_vmap=True,  # the two critics in a loop: cheaper than torch.vmap on CPU
-        ).to(self.device)
-        self.loss.make_value_estimator(gamma=cfg.gamma)
+        self.loss = self.on_device(
+            TD3Loss(
+                self.policy,
+                TensorModule(critic, ["observation", "action"], ["state_action_value"]),
+                action_spec=spec,
+                policy_noise=cfg.target_noise * half,  # TorchRL's noise is in action units
+                noise_clip=cfg.target_noise_clip * half,
+                loss_function="l2",
+                deactivate_vmap=True,  # the two critics in a loop: cheaper than torch.vmap on CPU
+            )
+        )
         self.target_updater = ForeachSoftUpdate(self.loss, tau=cfg.tau)
         self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=cfg.lr, fused=True)
         explore = Exploration(

@@ -21,6 +21,7 @@ from tensordict import TensorDict
 from rlpipe.algos.reinforce import normalized_returns
 from rlpipe.checkpoint import load_checkpoint
 from rlpipe.envs.backends import envpool_version
+from rlpipe.rundir import RunDir
 
 DEVICE = os.environ.get("RLPIPE_TEST_DEVICE", "cuda")
 pytestmark = pytest.mark.skipif(
@@ -46,15 +47,11 @@ def tensor_devices(state: Any) -> set[str]:
     return {state.device.type} if floating else set()
 
 
-def newest_checkpoint(run_dir: Path) -> Path:
-    return max((run_dir / "checkpoints").glob("ckpt_*.pt"))
-
-
 def assert_trained_on_device(run_dir: Path, algo: str) -> None:
     """The newest checkpoint's networks, losses and replay buffers were saved from ``DEVICE``
     (ARS's from the CPU: it runs there whatever ``device`` says). The optimizers are left out:
     torch keeps a non-fused Adam's step counts on the CPU by design."""
-    state = load_checkpoint(newest_checkpoint(run_dir), map_location=None)["algo"]
+    state = load_checkpoint(RunDir(run_dir).checkpoints()[-1], map_location=None)["algo"]
     learner = {key: value for key, value in state.items() if key != "optimizer"}
     assert tensor_devices(learner) == {"cpu" if algo == "ars" else DEVICE}, sorted(learner)
 
@@ -76,7 +73,7 @@ def test_a_run_killed_on_the_device_resumes_and_evaluates(tmp_path, algo, backen
     killed = rlpipe(*args, cwd=tmp_path, env={"RLPIPE_FAULT": "checkpoint_write@2"})
     assert killed.returncode == -signal.SIGKILL, killed.stderr  # writing its second checkpoint
     assert not (run_dir / "summary.json").exists()
-    assert len(list((run_dir / "checkpoints").glob("ckpt_*.pt"))) == 1
+    assert len(RunDir(run_dir).checkpoints()) == 1
     resumed = rlpipe(*args, cwd=tmp_path)
     assert resumed.returncode == 0, resumed.stderr
     assert "rlpipe: resuming" in resumed.stdout, resumed.stdout

@@ -112,15 +112,15 @@ class DQN(OffPolicy):
             spec, eps_init=cfg.eps_start, eps_end=cfg.eps_end, device=self.device
         )
         self.exploration.eps.fill_(epsilon(0, cfg))
-        self.loss = DirectDQNLoss(  # DQNLoss, its forward on plain tensors
-            self.policy,
-            loss_function=cfg.loss,
-            delay_value=True,
-            double_dqn=cfg.double_dqn,
-            action_space=spec,
+        self.loss = self.on_device(
+            DirectDQNLoss(  # DQNLoss, its forward on plain tensors
+                self.policy,
+                loss_function=cfg.loss,
+                delay_value=True,
+                double_dqn=cfg.double_dqn,
+                action_space=spec,
+            )
         )
-        self.loss.make_value_estimator(gamma=cfg.gamma)
-        self.loss.to(self.device)  # the estimator's γ and the loss's buffers: CPU until now
         self.target_updater = (  # tau 1: copy (TorchRL's SoftUpdate wants tau <= 0.5)
             HardUpdate(self.loss, value_network_update_interval=0)  # 0: copy at every step()
             if cfg.tau == 1.0

@@ -31,11 +31,11 @@ class OffPolicy(EnvAlgorithm):
     then the target networks' update (:meth:`update_targets`): after every gradient step, or,
     with ``cfg.target_update_every``, once the frames pass a multiple of it.
 
-    A subclass gives the maths. Its ``_build(env)`` sets ``self.policy`` (greedy),
-    ``self.loss`` (a TorchRL loss module), ``self.optimizer`` and ``self.target_updater``, then
-    calls :meth:`start_loop` with the collecting policy (and, for the lean collection, the same
-    policy on plain tensors); it implements :meth:`loss_of`, and may override
-    :meth:`follow_schedules`, :meth:`collect_metrics`, :meth:`transitions`,
+    A subclass gives the maths. Its ``_build(env)`` sets ``self.policy`` (greedy), ``self.loss``
+    (a TorchRL loss module, through :meth:`on_device`), ``self.optimizer`` and
+    ``self.target_updater``, then calls :meth:`start_loop` with the collecting policy (and, for
+    the lean collection, the same policy on plain tensors); it implements :meth:`loss_of`, and
+    may override :meth:`follow_schedules`, :meth:`collect_metrics`, :meth:`transitions`,
     :meth:`clip_gradients` and :meth:`update_targets`. Checkpoints hold the loss module
     (networks and targets), the optimizer, the replay buffer and :attr:`updates`.
     """
@@ -46,6 +46,13 @@ class OffPolicy(EnvAlgorithm):
     # gradient steps so far; during one, its number (from 1), which loss_of and update_targets
     # read (e.g. TD3's delayed actor and target updates)
     updates: int = 0
+
+    def on_device(self, loss: LossModule) -> LossModule:
+        """``loss`` with its value estimator (γ: ``cfg.gamma``), moved onto the device with its
+        buffers (TorchRL makes the estimator's γ on the CPU); before the optimizer and target
+        updater take its tensors."""
+        loss.make_value_estimator(gamma=self.cfg.gamma)
+        return loss.to(self.device)
 
     def start_loop(
         self,

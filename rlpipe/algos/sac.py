@@ -94,18 +94,18 @@ class SAC(OffPolicy):
         critic = critic if first is None else EncodeFirst(first, critic)
         qvalue = TensorModule(critic, ["observation", "action"], ["state_action_value"])
         qvalue = qvalue.to(self.device)
-        self.loss = DirectSACLoss(  # SACLoss, its forward on plain tensors
-            self.policy,
-            qvalue,
-            num_qvalue_nets=2,
-            alpha_init=cfg.alpha_init,
-            fixed_alpha=cfg.fixed_alpha,
-            target_entropy=-float(size) if cfg.target_entropy is None else cfg.target_entropy,
-            loss_function="l2",
-            deactivate_vmap=True,  # the two critics in a loop: cheaper than torch.vmap on CPU
+        self.loss = self.on_device(
+            DirectSACLoss(  # SACLoss, its forward on plain tensors
+                self.policy,
+                qvalue,
+                num_qvalue_nets=2,
+                alpha_init=cfg.alpha_init,
+                fixed_alpha=cfg.fixed_alpha,
+                target_entropy=-float(size) if cfg.target_entropy is None else cfg.target_entropy,
+                loss_function="l2",
+                deactivate_vmap=True,  # the two critics in a loop: cheaper than torch.vmap on CPU
+            )
         )
-        self.loss.make_value_estimator(gamma=cfg.gamma)
-        self.loss.to(self.device)  # the estimator's γ and the loss's buffers: CPU until now
         self.target_updater = ForeachSoftUpdate(self.loss, tau=cfg.tau)
         self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=cfg.lr, fused=True)
         self._actor = inner_network(self.policy).module
