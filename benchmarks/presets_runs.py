@@ -205,10 +205,12 @@ def rlpipe_job(
         start = os.getloadavg()[0]
         _call(["-m", "rlpipe", *overrides], log, out)
         final = f"seed={episodes_seed(seed, FINAL)}"  # SB3's final eval meets the same starts
-        _call(
-            ["-m", "rlpipe.evaluate", f"run_dir={run_dir}", f"episodes={episodes}", final], log, out
-        )
-        ran = RunDir(run_dir).read_config()
+        # the run dir is this call's own: a network's or env's module named by an --override
+        # (algo.network._target_=...) is imported again to evaluate it
+        trusted = "allow_env_import=true"
+        evaluate = ["-m", "rlpipe.evaluate", f"run_dir={run_dir}", f"episodes={episodes}"]
+        _call([*evaluate, final, trusted], log, out)
+        ran = RunDir(run_dir).read_config(allow_code=True)
         saved = record(
             meta, start, **read_run(run_dir), config=identity(ran), backend=ran.env.backend
         )

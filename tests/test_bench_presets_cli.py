@@ -132,3 +132,18 @@ def test_a_tiny_run_beside_sb3_and_its_read_back(tmp_path) -> None:
     older = subprocess.run([*command, "--read-only"], capture_output=True, text=True)
     assert older.returncode == 0, older.stderr
     assert "| 100 ‡ |" in older.stdout and len(re.findall(r"\| [✓✗] ‡ \|", older.stdout)) == 2
+
+
+def test_a_tuning_run_with_your_network_is_evaluated(tmp_path) -> None:
+    """``--override algo.network._target_=...``: the final eval imports the network again (the
+    run dir is the benchmark's own), and the record names it."""
+    examples = SCRIPT.parents[1] / "examples"
+    command = [sys.executable, str(SCRIPT), "--presets", "dqn_cartpole", "--tune", "--seeds", "3"]
+    command += ["--frames", "640", "--final-episodes", "2", "--out", str(tmp_path)]
+    command += ["--override", "algo.network._target_=dueling_dqn.DuelingQNet"]
+    env = {**os.environ, "PYTHONPATH": str(examples)}
+    done = subprocess.run(command, capture_output=True, text=True, timeout=300, env=env)
+    assert done.returncode == 0 and "FAILED" not in done.stdout, done.stdout + done.stderr
+    saved = json.loads((tmp_path / "dqn_cartpole" / "seed3" / "rlpipe.json").read_text())
+    assert saved["config"]["algo.network._target_"] == "dueling_dqn.DuelingQNet"
+    assert saved["final"] is not None
