@@ -65,17 +65,40 @@ def budget_parser(description: str, frames: int, eval_every: int) -> argparse.Ar
     return p
 
 
+def cpu_model(cpuinfo: str | None = None) -> str:
+    """The CPU by name, family and model, and the widest vector instructions it has (from
+    ``cpuinfo``, the text of Linux's /proc/cpuinfo, read when not given; where there is none,
+    what ``platform`` knows): torch's kernels, and so a run's rounding, follow them, so the
+    same seed can take another path on another CPU."""
+    if cpuinfo is None:
+        try:
+            cpuinfo = Path("/proc/cpuinfo").read_text()
+        except OSError:
+            return platform.processor() or platform.machine()
+    fields: dict[str, str] = {}
+    for line in cpuinfo.splitlines():
+        key, _, value = line.partition(":")
+        fields.setdefault(key.strip(), value.strip())
+    flags = set(fields.get("flags", "").split())
+    vector = next((f for f in ("avx512f", "avx2", "avx", "sse4_2") if f in flags), "")
+    details = [vector.removesuffix("f")] if vector else []
+    if "model" in fields:
+        details.insert(0, f"family {fields.get('cpu family', '?')}, model {fields['model']}")
+    name = fields.get("model name", platform.processor() or platform.machine())
+    return f"{name} ({', '.join(details)})" if details else name
+
+
 def machine(packages: Sequence[str]) -> str:
-    """One line naming the machine and the versions that matter."""
+    """One line naming the machine (its CPU: :func:`cpu_model`) and the versions that matter."""
     versions = []
     for name in packages:
         try:
             versions.append(f"{name} {version(name)}")
         except PackageNotFoundError:
             versions.append(f"{name} (not installed)")
-    cpu = platform.processor() or platform.machine()
     return (
-        f"{date.today()} · {platform.system()} {cpu}, {os.cpu_count()} cores · "
+        f"{date.today()} · {platform.system()} {platform.machine()}, {cpu_model()}, "
+        f"{os.cpu_count()} cores · "
         f"Python {platform.python_version()} · " + ", ".join(versions)
     )
 

@@ -38,11 +38,15 @@ PRESETS = {
     "ars_pendulum": ("Pendulum-v1, ARS", ("iterations", 20)),
     "ars_cartpole": ("CartPole-v1, ARS", ("iterations", 10)),
     "dqn_cartpole": ("CartPole-v1 ×16, DQN", ("frames", 3_000)),
-    "ppo_cartpole": ("CartPole-v1 ×16, PPO", ("frames", 4_096)),
+    # 40 updates: where most seeds' runs reach 500 (the span a time to the target measures)
+    "ppo_cartpole": ("CartPole-v1 ×16, PPO", ("frames", 20_480)),
+    "ppo_lunarlander": ("LunarLander-v3 ×16, PPO", ("frames", 16_384)),
     "dqn_lunarlander": ("LunarLander-v3 ×8, DQN", ("frames", 3_000)),
     "dqn_mountaincar": ("MountainCar-v0 ×8, DQN", ("frames", 3_000)),
+    "dqn_acrobot": ("Acrobot-v1 ×8, DQN", ("frames", 3_000)),
     "sac_pendulum": ("Pendulum-v1, SAC", ("frames", 1_000)),
     "sac_bipedal": ("BipedalWalker-v3, SAC", ("frames", 1_000)),
+    "sac_mountaincar_continuous": ("MountainCarContinuous-v0, SAC", ("frames", 1_000)),
 }
 MAIN_JOB = ["algo=ars", "env=bipedal"]
 MAIN_FRAMES = 150_000

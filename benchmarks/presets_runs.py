@@ -152,11 +152,15 @@ def same_identity(saved: dict, cfg: Config) -> bool:
 
 def rlpipe_finished(out: Path, cfg: Config | None = None) -> bool:
     """Whether ``out`` (a job's dir in ``--out``) holds the record of a finished and evaluated
-    rlpipe run of ``cfg`` (a preset changed since: not finished), or such a run from before
-    records held the evals."""
+    rlpipe run of ``cfg`` (a preset changed since, or a run on another env backend than the
+    one ``cfg`` names: not finished), or such a run from before records held the evals."""
     meta = out / "rlpipe.json"
     if meta.is_file() and "evals" in (saved := json.loads(meta.read_text())):
-        return cfg is None or same_identity(saved.get("config", {}), cfg)
+        # a backend the preset or an --override names (not auto) must be the record's
+        backend = "auto" if cfg is None else cfg.env.backend
+        return (cfg is None or same_identity(saved.get("config", {}), cfg)) and (
+            backend == "auto" or saved.get("backend") == backend
+        )
     return (out / "run" / "summary.json").is_file() and bool(final_evals(out / "run"))
 
 

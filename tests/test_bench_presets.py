@@ -137,6 +137,19 @@ def test_a_machine_is_one_label_whatever_the_days_its_runs_ran_on(bench) -> None
     ]
 
 
+def test_a_record_names_its_cpu_as_well_as_its_cores(bench) -> None:
+    cpuinfo = (
+        "processor\t: 0\ncpu family\t: 6\nmodel\t\t: 167\nmodel name\t: Intel(R) Xeon(R) "
+        "Processor\nflags\t\t: fpu sse4_2 avx avx2 avx512f\n\nprocessor\t: 1\nmodel\t\t: 99\n"
+    )
+    named = "Intel(R) Xeon(R) Processor (family 6, model 167, avx512)"
+    assert bench.common.cpu_model(cpuinfo) == named
+    older = cpuinfo.replace(" avx512f", "").replace("167", "63")
+    assert bench.common.cpu_model(older) == named.replace("167", "63").replace("avx512", "avx2")
+    assert bench.common.cpu_model("") != ""  # no /proc/cpuinfo fields: what platform knows
+    assert bench.common.cpu_model() in bench.common.machine(["torch"])
+
+
 def test_a_seed_row_names_sb3_s_machine_where_it_ran_elsewhere(bench) -> None:
     preset = bench.presets_table.PRESETS["dqn_cartpole"]
     ours = [run(bench, 100, [500.0], 500.0), run(bench, 101, [500.0], 500.0)]
@@ -304,6 +317,21 @@ def test_a_record_from_before_a_config_field_existed_still_stands_at_its_default
     assert not runs.same_identity(older, compose_run("+experiment=dqn_cartpole", "algo.eps_zeta=2"))
     assert not runs.same_identity({**saved, "algo.lr": 1.0}, cfg)
     assert not runs.same_identity({**saved, "algo.gone": 1}, cfg)  # a field since removed
+
+
+def test_a_record_on_another_backend_stands_only_where_the_backend_is_auto(bench, tmp_path):
+    import json
+
+    from rlpipe.cli import compose_run
+
+    runs, cfg = bench.presets_runs, compose_run("+experiment=ppo_cartpole")
+    saved = {"evals": [[10_000, 500.0, 1.0]], "final": 500.0, "config": runs.identity(cfg)}
+    (tmp_path / "rlpipe.json").write_text(json.dumps({**saved, "backend": "envpool"}))
+    backends = ("auto", "gymnasium", "envpool")
+    on = {b: compose_run("+experiment=ppo_cartpole", f"env.backend={b}") for b in backends}
+    assert runs.rlpipe_finished(tmp_path, on["auto"])  # auto picks per machine: the record says
+    assert runs.rlpipe_finished(tmp_path, on["envpool"])
+    assert not runs.rlpipe_finished(tmp_path, on["gymnasium"])  # run anew on gymnasium
 
 
 def test_the_aggregate_is_normalised_by_the_target(bench) -> None:
