@@ -159,6 +159,28 @@ def test_a_deep_copy_is_bound_to_its_own_parameters():
     assert not torch.allclose(twin(_batch())["loss"], loss(_batch())["loss"])
 
 
+def _double(batch: TensorDict) -> TensorDict:
+    return batch.apply(lambda x: x.double() if x.is_floating_point() else x)
+
+
+def test_a_loss_cast_after_its_first_forward_binds_its_cast_parameters():
+    """``double()`` (as ``to()`` and ``cuda()``) puts other tensors in the parameters' place:
+    the direct forward then computes on those, as TorchRL's does."""
+    theirs = DQNLoss(_actor(), action_space=Categorical(3), delay_value=True)
+    ours = DirectDQNLoss(_actor(), action_space=Categorical(3), delay_value=True)
+    for loss in (theirs, ours):
+        loss.make_value_estimator(gamma=0.9)
+    ours.load_state_dict(theirs.state_dict())
+    ours(_batch())  # bound to the float parameters
+    theirs.double(), ours.double()
+    out = ours(_double(_batch()))["loss"]
+    assert out.dtype == torch.float64
+    torch.testing.assert_close(out, theirs(_double(_batch()))["loss"])
+    sac = _sac(DirectSACLoss)
+    sac(_sac_batch())
+    assert sac.double()(_double(_sac_batch()))["loss_qvalue"].dtype == torch.float64
+
+
 def _sac(cls: type, alpha_init: float = 0.7, encoded: bool = False) -> SACLoss:
     """SAC's losses; ``encoded``: the critic an encoder first (a network other than an MLP)."""
     torch.manual_seed(3)

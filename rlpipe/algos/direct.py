@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import copy
 import math
+from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -52,26 +53,41 @@ def bind(module: nn.Module, params: TensorDictBase) -> nn.Module:
 
 class Bound:
     """The networks a direct forward calls (``loss._networks()``), made at the first call and
-    again when the loss's parameter tensors are other ones (a move to another device); kept
-    outside what ``nn.Module`` registers, so the state dict stays TorchRL's."""
+    again after :meth:`reset` (the loss's ``_apply``: ``to()``, ``cuda()``, ``double()`` may
+    put other tensors in its parameters' place); kept outside what ``nn.Module`` registers, so
+    the state dict stays TorchRL's."""
 
     def __init__(self) -> None:
-        self.owner: tuple[int, ...] = ()
         self.nets: tuple = ()
+
+    def reset(self) -> None:
+        """Bind again at the next call."""
+        self.nets = ()
 
     @torch.compiler.disable  # under compile=true the forward's graph starts after the binding
     def __call__(self, loss: nn.Module) -> tuple:
-        owner = tuple(id(p) for p in loss.parameters())
-        if owner != self.owner:
+        if not self.nets:
             with torch.enable_grad():  # views of stacked parameters carry their gradients
-                self.nets, self.owner = loss._networks(), owner
+                self.nets = loss._networks()
         return self.nets
 
     def __deepcopy__(self, memo: dict) -> Bound:  # a copy of the loss binds its own parameters
         return Bound()
 
 
-class DirectDQNLoss(DQNLoss):
+class Binding(nn.Module):
+    """What a direct loss mixes in: a :class:`Bound` (``_bound``) bound anew whenever
+    ``_apply`` (a move or cast) runs, as TorchRL's losses erase their caches there."""
+
+    _bound: Bound
+
+    def _apply(self, *args: Any, **kwargs: Any) -> nn.Module:
+        if "_bound" in self.__dict__:
+            self._bound.reset()
+        return super()._apply(*args, **kwargs)
+
+
+class DirectDQNLoss(Binding, DQNLoss):
     """``DQNLoss`` (a ``QValueActor`` over one :class:`~rlpipe.models.TensorModule`, a
     categorical action space, TorchRL's TD(0) value estimator) whose :meth:`forward` computes
     what ``DQNLoss.forward`` computes: the chosen action's value, double DQN's online argmax and
@@ -147,7 +163,7 @@ def reduced_distance(
     return fused(predicted, target, reduction=loss.reduction)
 
 
-class DirectSACLoss(SACLoss):
+class DirectSACLoss(Binding, SACLoss):
     """``SACLoss`` (version 2: no state-value network; a ``ProbabilisticActor`` and the Q
     network each over one :class:`~rlpipe.models.TensorModule`) whose :meth:`forward` computes
     what ``SACLoss.forward`` computes, drawing its random actions in the same order: the target

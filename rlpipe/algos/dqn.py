@@ -180,6 +180,7 @@ class DQN(OffPolicy):
         return out["loss"], {"train/q_mean": out["q_mean"]}
 
     def clip_gradients(self) -> None:
-        torch.nn.utils.clip_grad_value_(self.loss.parameters(), self.cfg.grad_clip_value)
+        params = self.optimizer.param_groups[0]["params"]  # the loss's, listed once
+        torch.nn.utils.clip_grad_value_(params, self.cfg.grad_clip_value)
         if self.cfg.max_grad_norm is not None:
-            torch.nn.utils.clip_grad_norm_(self.loss.parameters(), self.cfg.max_grad_norm)
+            torch.nn.utils.clip_grad_norm_(params, self.cfg.max_grad_norm)
