@@ -181,6 +181,22 @@ def test_a_loss_cast_after_its_first_forward_binds_its_cast_parameters():
     assert sac.double()(_double(_sac_batch()))["loss_qvalue"].dtype == torch.float64
 
 
+def test_a_load_after_the_first_forward_is_seen():
+    """``load_state_dict`` copies into the bound parameters: no binding again is needed."""
+    theirs = DQNLoss(_actor(), action_space=Categorical(3), delay_value=True)
+    ours = DirectDQNLoss(_actor(), action_space=Categorical(3), delay_value=True)
+    for loss in (theirs, ours):
+        loss.make_value_estimator(gamma=0.9)
+    with torch.no_grad():
+        for p in theirs.parameters():
+            p.add_(0.3)
+    before = ours(_batch())["loss"]
+    ours.load_state_dict(theirs.state_dict())
+    after = ours(_batch())["loss"]
+    assert not torch.allclose(after, before)
+    torch.testing.assert_close(after, theirs(_batch())["loss"])
+
+
 def _sac(cls: type, alpha_init: float = 0.7, encoded: bool = False) -> SACLoss:
     """SAC's losses; ``encoded``: the critic an encoder first (a network other than an MLP)."""
     torch.manual_seed(3)
