@@ -81,9 +81,9 @@ def cpu_model(cpuinfo: str | None = None) -> str:
         fields.setdefault(key.strip(), value.strip())
     flags = set(fields.get("flags", "").split())
     vector = next((f for f in ("avx512f", "avx2", "avx", "sse4_2") if f in flags), "")
-    details = [vector.removesuffix("f")] if vector else []
-    if "model" in fields:
-        details.insert(0, f"family {fields.get('cpu family', '?')}, model {fields['model']}")
+    model = fields.get("model")
+    details = [f"family {fields.get('cpu family', '?')}, model {model}"] if model else []
+    details += [vector.removesuffix("f")] if vector else []
     name = fields.get("model name", platform.processor() or platform.machine())
     return f"{name} ({', '.join(details)})" if details else name
 

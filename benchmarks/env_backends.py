@@ -28,7 +28,7 @@ from functools import partial
 from pathlib import Path
 from statistics import median
 
-from common import machine, publish_section, script, table
+from common import busy, machine, publish_section, script, table
 
 BACKENDS = ("gymnasium", "envpool")
 CONDITIONS = ("alone", "beside a busy core")
@@ -138,10 +138,7 @@ def collect(state: Path, rounds: int) -> list[dict]:
         ]
         if not todo:
             continue
-        busy = None
-        if condition != "alone":
-            busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
-        try:
+        with busy(condition != "alone"):
             for k, name, backend in todo:
                 load = os.getloadavg()[0]
                 result = run_measure(name, backend)
@@ -151,10 +148,6 @@ def collect(state: Path, rounds: int) -> list[dict]:
                 with state.open("a") as f:
                     f.write(json.dumps(record) + "\n")
                 print(json.dumps(record), file=sys.stderr)
-        finally:
-            if busy is not None:
-                busy.kill()
-                busy.wait()
     return done
 
 

@@ -157,9 +157,9 @@ def rlpipe_finished(out: Path, cfg: Config | None = None) -> bool:
     meta = out / "rlpipe.json"
     if meta.is_file() and "evals" in (saved := json.loads(meta.read_text())):
         # a backend the preset or an --override names (not auto) must be the record's
-        backend = "auto" if cfg is None else cfg.env.backend
-        return (cfg is None or same_identity(saved.get("config", {}), cfg)) and (
-            backend == "auto" or saved.get("backend") == backend
+        return cfg is None or (
+            same_identity(saved.get("config", {}), cfg)
+            and cfg.env.backend in ("auto", saved.get("backend"))
         )
     return (out / "run" / "summary.json").is_file() and bool(final_evals(out / "run"))
 
