@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import io
 import re
-from dataclasses import fields
+from dataclasses import fields, replace
 from functools import partial
 
 import numpy as np
@@ -14,6 +14,7 @@ from conftest import TINY, assert_auto_chose_envpool
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from test_config import compose_config
+from test_envpool import needs_envpool
 from torch import nn
 from torch.nn.utils import parameters_to_vector, vector_to_parameters
 
@@ -166,8 +167,20 @@ def test_workers_take_fewer_chunks_of_a_policy_that_costs_more_per_call(
     from rlpipe.algos.ars import chunking
 
     monkeypatch.setattr(chunking, "measured_costs", lambda *args: (call, env_step))
-    got = chunking.chunks_per_worker(None, None, population=32, workers=2, seed=0)
+    factory = partial(make_env, PENDULUM, vectorization="sync")
+    got = chunking.chunks_per_worker(None, factory, population=32, workers=2, seed=0)
     assert got == chunks and 1 <= got <= chunking.MAX_CHUNKS
+
+
+@needs_envpool
+def test_workers_take_their_share_as_one_chunk_on_envpool(monkeypatch):
+    """On EnvPool every chunk is a fresh pool stepped through a hand-off to its threads: one
+    chunk a worker, whatever the costs would allow on gymnasium."""
+    from rlpipe.algos.ars import chunking
+
+    monkeypatch.setattr(chunking, "measured_costs", lambda *args: (1e-7, 1e-4))  # 8 on gymnasium
+    pooled = partial(make_env, replace(PENDULUM, backend="envpool"))
+    assert chunking.chunks_per_worker(None, pooled, population=32, workers=2, seed=0) == 1
 
 
 def test_pendulum_preset_is_a_biased_mlp_run_for_its_whole_frame_budget():

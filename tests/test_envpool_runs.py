@@ -1,10 +1,11 @@
-"""Runs on the EnvPool backend: ARS's population rollouts on one pool, every algorithm through the
+"""Runs on the EnvPool backend: ARS's population rollouts on pools, every algorithm through the
 command line, the backend a run records and resumes with, evaluation on either backend, and
 every bad ``env.backend`` input as one line."""
 
 from __future__ import annotations
 
 import json
+import os
 from functools import partial
 
 import numpy as np
@@ -17,7 +18,7 @@ from test_envpool import needs_envpool
 from torch.nn.utils import parameters_to_vector
 
 from rlpipe.algos.ars import ARS, ARSConfig, ARSSearch, make_ars_policy
-from rlpipe.algos.ars.backends import _InProcess
+from rlpipe.algos.ars.backends import _InProcess, _Processes
 from rlpipe.algos.ars.rollout import pool_rollout, rollout
 from rlpipe.config import Config, EnvConfig, config_from_dict, config_to_dict, fingerprint
 from rlpipe.envs import envpool_env, make_env, sub_envs
@@ -85,16 +86,28 @@ def test_pool_rollouts_take_the_bound_penalty_off_the_training_returns():
 
 
 @needs_envpool
-def test_ars_runs_its_population_on_one_pool_here_with_the_workers_as_threads():
-    torch.manual_seed(0)
-    algo = ARS(
-        partial(make_env, WALKER),
-        ARSConfig(num_directions=4, num_best=2, workers=2, episode_length=50),
-    )
-    algo.train_step()
-    backend = algo.search._backend
-    assert isinstance(backend, _InProcess) and backend.rollouts.pool.threads == 2
-    algo.close()
+def test_ars_shares_the_cores_out_among_its_workers_pools_for_the_same_theta():
+    """One worker: the population on one pool here, a thread per core; two: a process each,
+    its half of the population as one chunk on pools of its own; the same θ either way."""
+    thetas = []
+    for workers in (1, 2):
+        torch.manual_seed(0)
+        algo = ARS(
+            partial(make_env, WALKER),
+            ARSConfig(num_directions=4, num_best=2, workers=workers, episode_length=50),
+        )
+        algo.train_step()
+        algo.train_step()
+        backend = algo.search._backend
+        if workers == 1:
+            assert isinstance(backend, _InProcess)
+            assert backend.rollouts.pool.threads == min(os.cpu_count() or 1, 8)
+        else:
+            assert isinstance(backend, _Processes) and len(backend.workers) == 2
+            assert [len(chunk) for chunk in backend.chunks] == [4, 4]
+        thetas.append(algo.search.theta)
+        algo.close()
+    assert torch.equal(*thetas)
 
 
 @needs_envpool

@@ -38,11 +38,12 @@ class ARS(Algorithm):
     One env copy is built for the specs and closed; the ``2N`` perturbed policies roll out on
     copies that ``env_factory(num_envs=n, seed=s, vectorization="sync")`` builds, spread over
     ``cfg.workers`` processes (``cfg.backend="ray"``: Ray actors, see ``cfg.ray``), which start
-    with the first :meth:`train_step`. On the EnvPool backend (``env.backend``) the local
-    backend rolls out all ``2N`` on one pool in this process instead, ``cfg.workers`` being its
-    threads (0: one per core). One :meth:`train_step` is one ARS iteration; ``frames``
-    counts every step of every perturbed rollout. ARS runs on the CPU whatever ``device`` says:
-    its per-step work is one small batched matmul, next to the env's physics.
+    with the first :meth:`train_step`. On the EnvPool backend (``env.backend``) each local
+    worker steps its share of the ``2N`` on a pool of its own, the cores shared out as the
+    pools' threads (one worker: all ``2N`` on one pool in this process). One :meth:`train_step`
+    is one ARS iteration; ``frames`` counts every step of every perturbed rollout. ARS runs on
+    the CPU whatever ``device`` says: its per-step work is one small batched matmul, next to the
+    env's physics.
 
     ``network`` (or ``cfg.network``) is your policy network in place of the linear map or MLP:
     normalised observations to one output per action (discrete: the argmax is taken) or per
@@ -77,10 +78,10 @@ class ARS(Algorithm):
         seed = int(torch.randint(0, 2**31 - 1, ()))  # from the run's seeded torch generator
         params = {key: getattr(cfg, key) for key in SEARCH_PARAMS}  # the same names and checks
         rollout_factory = partial(env_factory, vectorization="sync")
-        if pooled and cfg.backend == "local":  # one pool here, its threads the workers
-            threads = min(cfg.workers or os.cpu_count() or 1, 2 * cfg.num_directions)
-            rollout_factory = partial(rollout_factory, threads=threads)
-            params["workers"] = 1
+        if pooled and cfg.backend == "local":  # the cores shared out as each worker's threads
+            cores = os.cpu_count() or 1
+            workers = min(cfg.workers or cores, 2 * cfg.num_directions)
+            rollout_factory = partial(rollout_factory, threads=max(cores // workers, 1))
         self.search = ARSSearch(
             self.policy,
             rollout_factory,
