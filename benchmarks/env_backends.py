@@ -27,6 +27,7 @@ from dataclasses import replace
 from functools import partial
 from pathlib import Path
 from statistics import median
+from typing import Any
 
 from common import busy, machine, publish_section, script, table
 
@@ -58,10 +59,17 @@ REFERENCE_ITERATIONS = 3
 WALKER = Path(__file__).parent / "results" / "ars_bipedal_walker.json"
 
 
-def measure(preset: str, backend: str) -> dict:
-    """Build ``preset`` on ``backend`` as a run does and time its training loop."""
+def load_walker(policy: Any) -> None:
+    """Put :data:`WALKER`'s θ and normaliser into ``policy`` (``ars_bipedal``'s ARS policy)."""
     import torch
 
+    walker = json.loads(WALKER.read_text())
+    own = policy.state_dict()
+    policy.load_state_dict({k: torch.tensor(walker[k], dtype=v.dtype) for k, v in own.items()})
+
+
+def measure(preset: str, backend: str) -> dict:
+    """Build ``preset`` on ``backend`` as a run does and time its training loop."""
     from rlpipe.algos import make_algorithm
     from rlpipe.cli import compose_run
     from rlpipe.envs import make_env
@@ -78,10 +86,7 @@ def measure(preset: str, backend: str) -> dict:
     algo = make_algorithm(factory, cfg.algo, device=device)
     unit, budget = PRESETS[preset][1]
     if start == "walking":
-        own = algo.policy.state_dict()
-        walker = json.loads(WALKER.read_text())
-        walking = {k: torch.tensor(walker[k], dtype=v.dtype) for k, v in own.items()}
-        algo.policy.load_state_dict(walking)
+        load_walker(algo.policy)
     try:
         if hasattr(algo, "search"):
             algo.search.start()  # its workers or pool, started before the clock
