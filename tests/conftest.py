@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import importlib
 import os
 import shutil
 import subprocess
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -94,6 +96,17 @@ def start_module(
         stderr=subprocess.PIPE,
         text=True,
     )
+
+
+@contextmanager
+def benchmark_module(name: str) -> Iterator[Any]:
+    """``benchmarks/<name>.py``, imported with its folder on ``sys.path`` while in use."""
+    folder = str(Path(__file__).resolve().parents[1] / "benchmarks")
+    sys.path.insert(0, folder)
+    try:
+        yield importlib.import_module(name)
+    finally:
+        sys.path.remove(folder)
 
 
 def assert_auto_chose_envpool(stdout: str) -> None:

@@ -3,35 +3,21 @@ policy and walks (its steps/s are those of walking episodes, not of falls)."""
 
 from __future__ import annotations
 
-import importlib
-import sys
-from pathlib import Path
-
-import pytest
 import torch
+from conftest import benchmark_module
 
 from rlpipe import compose_run, make_env
 from rlpipe.algos.ars import make_ars_policy
 from rlpipe.config import EnvConfig
 from rlpipe.episodes import evaluate
 
-BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 
-
-@pytest.fixture
-def env_backends():
-    sys.path.insert(0, str(BENCHMARKS))
-    try:
-        yield importlib.import_module("env_backends")
-    finally:
-        sys.path.remove(str(BENCHMARKS))
-
-
-def test_the_walking_start_walks(env_backends):
+def test_the_walking_start_walks():
     cfg = compose_run("+experiment=ars_bipedal")
     env_cfg = EnvConfig(id=cfg.env.id, backend="gymnasium")
     policy, normalizer = make_ars_policy(make_env(env_cfg, num_envs=1), cfg.algo)
-    env_backends.load_walker(policy)
+    with benchmark_module("env_backends") as env_backends:
+        env_backends.load_walker(policy)
     assert normalizer.count > 1e6 and torch.count_nonzero(policy[1].module.weight) == 4 * 24
     result = evaluate(policy, make_env(env_cfg, num_envs=2, seed=5), episodes=2)
     # it walks (about 300; a zero policy stands at about -90), though some episodes fall
