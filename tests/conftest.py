@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib
 import os
 import shutil
 import subprocess
@@ -99,12 +98,12 @@ def start_module(
 
 
 @contextmanager
-def benchmark_module(name: str) -> Iterator[Any]:
-    """``benchmarks/<name>.py``, imported with its folder on ``sys.path`` while in use."""
+def benchmarks_importable() -> Iterator[None]:
+    """The benchmarks/ folder on ``sys.path`` while in use: its scripts import as modules."""
     folder = str(Path(__file__).resolve().parents[1] / "benchmarks")
     sys.path.insert(0, folder)
     try:
-        yield importlib.import_module(name)
+        yield
     finally:
         sys.path.remove(folder)
 

@@ -5,22 +5,17 @@ from __future__ import annotations
 
 import importlib
 import json
-import sys
-from pathlib import Path
 
 import pytest
+from conftest import benchmarks_importable
 
-BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 STEP = "train_step (rlpipe/algos/offpolicy.py:101)"
 
 
 @pytest.fixture(scope="module")
 def bench():
-    sys.path.insert(0, str(BENCHMARKS))
-    try:
+    with benchmarks_importable():
         yield importlib.import_module("breakdown"), importlib.import_module("same_learning")
-    finally:
-        sys.path.remove(str(BENCHMARKS))
 
 
 @pytest.mark.parametrize(

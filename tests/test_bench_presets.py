@@ -5,29 +5,23 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
-import sys
 import threading
 from functools import partial
-from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
+from conftest import benchmarks_importable
 
 from rlpipe.errors import RlpipeError
-
-BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 
 
 @pytest.fixture(scope="module")
 def bench():
-    sys.path.insert(0, str(BENCHMARKS))
-    try:
+    with benchmarks_importable():
         yield SimpleNamespace(
             **{m: importlib.import_module(m) for m in ("common", "presets_runs", "presets_table")},
             report=importlib.import_module("presets_report"),
         )
-    finally:
-        sys.path.remove(str(BENCHMARKS))
 
 
 def test_seeds_read_as_runs(bench) -> None:

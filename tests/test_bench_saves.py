@@ -8,21 +8,16 @@ import importlib.util
 import json
 import os
 import shutil
-import sys
 from pathlib import Path
 
 import pytest
-
-BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+from conftest import benchmarks_importable
 
 
 @pytest.fixture(scope="module")
 def presets():
-    sys.path.insert(0, str(BENCHMARKS))
-    try:
+    with benchmarks_importable():
         yield importlib.import_module("presets_sb3")
-    finally:
-        sys.path.remove(str(BENCHMARKS))
 
 
 class Killed(BaseException):
