@@ -37,7 +37,12 @@ def set_threads(threads: int | str, device: torch.device) -> None:
     """Set torch's intra-op threads, process-wide: ``"auto"`` is 1 on a CPU device (the networks
     here are small: more threads only contend with other processes) and torch's default
     elsewhere; ``0`` is torch's default (:data:`TORCH_THREADS`, one per core); ``N`` uses N.
-    Building an algorithm, a :class:`~rlpipe.Runner` and ``load_run`` call it."""
+    Building an algorithm, a :class:`~rlpipe.Runner` and ``load_run`` call it.
+
+    It also flushes subnormal floats (below 1.2e-38) to zero on the calling thread, where torch
+    runs its ops with one thread (``torch.set_flush_denormal``; x86 and ARM CPUs): weights that
+    weight decay shrinks into that range made MBRL's planner 4x slower on a CPU
+    (benchmarks/denormals.py), and no result here depends on numbers that small."""
     check(
         threads == "auto" or (type(threads) is int and threads >= 0),
         f"threads must be auto or a number >= 0 (0: torch's default), got {threads!r}",
@@ -45,6 +50,7 @@ def set_threads(threads: int | str, device: torch.device) -> None:
     if threads == "auto":
         threads = 1 if device.type == "cpu" else 0
     torch.set_num_threads(threads or TORCH_THREADS)
+    torch.set_flush_denormal(True)
 
 
 def env_threads(threads: int | str) -> int:

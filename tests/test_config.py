@@ -242,6 +242,22 @@ def test_threads_auto_is_one_on_cpu(threads, device, expected):
         torch.set_num_threads(before)
 
 
+def _flushes() -> bool:
+    """Whether torch flushes a subnormal float32 result (1e-40) to zero on this thread."""
+    return (torch.tensor([1e-30]) * torch.tensor([1e-10])).item() == 0.0
+
+
+def test_set_threads_flushes_subnormals():
+    before = _flushes()
+    try:
+        torch.set_flush_denormal(False)
+        assert not _flushes()  # the probe can tell
+        set_threads("auto", torch.device("cpu"))
+        assert _flushes()
+    finally:
+        torch.set_flush_denormal(before)
+
+
 @pytest.mark.parametrize(
     "overrides, added",
     [
