@@ -12,19 +12,30 @@ taking turns. The same observations and generator seed both ways give the larges
 in the planned actions, and ``--episodes`` greedy episodes (one env copy each, seed 0) the
 returns both ways.
 
-    python benchmarks/denormals.py --run-dir RUN [RUN ...] --append BENCHMARKS.md
+``--whole-run SEED``: ``python -m rlpipe +experiment=mbrl_pendulum seed=SEED`` from scratch, once
+as rlpipe runs it and once with subnormals kept (rlpipe has no switch for that: the kept run's
+process replaces ``torch.set_flush_denormal`` with a call that turns flushing off), one after
+the other: the run's wall, training and evaluation seconds, its evals both ways, and the
+subnormal parameters its last checkpoint holds.
+
+    python benchmarks/denormals.py --run-dir RUN [RUN ...] --whole-run 93 --append BENCHMARKS.md
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import statistics
+import subprocess
+import sys
+import tempfile
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import torch
-from common import busy, load_span, publish_section, script, section_head, table
+from common import busy, load_span, publish_section, read_scalar, script, section_head, table
 
 from rlpipe.envs import make_env
 from rlpipe.episodes import evaluate
@@ -33,6 +44,11 @@ from rlpipe.pipeline import load_run
 FLUSH = (True, False)  # subnormals flushed (rlpipe's setting), then kept
 CONDITIONS = {"alone": False, "beside a CPU-bound process": True}
 BATCHES = (1, 32)
+KEEP = (  # run rlpipe's command line with rlpipe's set_flush_denormal(True) turned into False
+    "import sys, torch; flush = torch.set_flush_denormal; "
+    "torch.set_flush_denormal = lambda on: flush(False); "
+    "sys.argv[0] = 'rlpipe'; from rlpipe.__main__ import main; main()"
+)
 
 
 def subnormals(model: torch.nn.Module) -> tuple[int, int]:
@@ -116,36 +132,93 @@ def measure(run_dir: Path, rounds: int, episodes: int) -> tuple[list[list[object
     return rows, line
 
 
+def whole_run(seed: int, extra: Sequence[str] = ()) -> tuple[list[list[object]], str]:
+    """Table rows for ``mbrl_pendulum`` trained with subnormals flushed, then kept (``extra``:
+    more overrides), and a line comparing their evals."""
+    rows, evals, seconds = [], {}, []
+    with tempfile.TemporaryDirectory() as tmp:
+        for flush in FLUSH:
+            run_dir = Path(tmp) / ("flushed" if flush else "kept")
+            head = [sys.executable, "-m", "rlpipe"] if flush else [sys.executable, "-c", KEEP]
+            args = ["+experiment=mbrl_pendulum", f"seed={seed}", "progress=false",
+                    f"hydra.run.dir={run_dir}", *extra]  # fmt: skip
+            subprocess.run([*head, *args], check=True, capture_output=True)
+            summary = json.loads((run_dir / "summary.json").read_text())
+            train = read_scalar(run_dir, "time/train_seconds")[-1][1]
+            evaluating = sum(v for _, v in read_scalar(run_dir, "time/eval_seconds"))
+            evals[flush] = read_scalar(run_dir, "eval/return_mean")
+            seconds.append((summary["wall_time"], train, evaluating))
+            loaded = load_run(str(run_dir), None, device=torch.device("cpu"))
+            count, total = subnormals(loaded.algo.model)
+            loaded.algo.close()
+            rows.append([seed, "flushed (rlpipe)" if flush else "kept", f"{summary['frames']:,}",
+                          f"{summary['wall_time']:.0f}", f"{train:.0f}", f"{evaluating:.0f}",
+                          f"{count:,} of {total:,}"])  # fmt: skip
+    for i, (flushed, kept) in enumerate(zip(*seconds), start=3):  # wall, train, eval
+        rows[1][i] += f" ({kept / flushed:.2f}×)"
+    gap = max(abs(a[1] - b[1]) for a, b in zip(evals[True], evals[False]))
+    last = f"{evals[True][-1][1]:.1f} and {evals[False][-1][1]:.1f}"
+    line = (
+        f"seed {seed}: {len(evals[True])} evals each; their returns differ by at most {gap:.2f} "
+        f"(the last: {last}); Adam's updates flush in one run and keep in the other, so the "
+        "weights part by tiny amounts"
+    )
+    return rows, line
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--run-dir", type=Path, nargs="+", required=True, help="MBRL run dirs")
+    p.add_argument("--run-dir", type=Path, nargs="*", default=[], help="MBRL run dirs")
     p.add_argument("--rounds", type=int, default=3, help="interleaved rounds per condition")
     p.add_argument("--episodes", type=int, default=4, help="greedy episodes both ways (0: none)")
+    p.add_argument(
+        "--whole-run", type=int, nargs="*", default=[], metavar="SEED",
+        help="train mbrl_pendulum from scratch with this seed, flushed and kept",
+    )  # fmt: skip
     p.add_argument("--append", type=Path, help="put the section into this Markdown file")
     args = p.parse_args()
+    if not args.run_dir and not args.whole_run:
+        p.error("give --run-dir RUN [RUN ...] and/or --whole-run SEED")
     load_before = os.getloadavg()
-    rows, lines = [], []
+    rows, lines, runs, run_lines = [], [], [], []
     for run_dir in args.run_dir:
         got, line = measure(run_dir, args.rounds, args.episodes)
         rows += got
         lines.append(line)
+    for seed in args.whole_run:
+        got, line = whole_run(seed)
+        runs += got
+        run_lines.append(line)
     head = section_head(
         "Subnormal floats: MBRL's planner with them flushed and kept",
         ["torch", "torchrl"],
         load_span(load_before, os.getloadavg()),
     )
-    report = "\n".join([
-        *head,
-        "One `Planner.plan` call on a trained run's newest checkpoint, one torch thread, median "
-        f"of {args.rounds} interleaved rounds; batch 1 is a training step, 32 an evaluation "
-        "step. The competitor is `python -c 'while True: pass'`.",
-        "",
-        table(["run", "subnormal parameters", "condition", "batch", "flushed ms", "kept ms",
-               "kept / flushed"], rows),
-        "",
-        *[f"- {line}" for line in lines],
-    ])  # fmt: skip
-    publish_section(report, args.append)
+    report = [*head]
+    if rows:
+        report += [
+            "One `Planner.plan` call on a trained run's newest checkpoint, one torch thread, "
+            f"median of {args.rounds} interleaved rounds; batch 1 is a training step, 32 an "
+            "evaluation step. The competitor is `python -c 'while True: pass'`.",
+            "",
+            table(["run", "subnormal parameters", "condition", "batch", "flushed ms", "kept ms",
+                   "kept / flushed"], rows),
+            "",
+            *[f"- {line}" for line in lines],
+            "",
+        ]  # fmt: skip
+    if runs:
+        report += [
+            "Whole runs, `python -m rlpipe +experiment=mbrl_pendulum seed=S` (15,000 frames, a "
+            "10-episode eval every 2,000 and at the end), flushed then kept, one after the other "
+            "(seconds: the run's own; in brackets kept / flushed):",
+            "",
+            table(["seed", "subnormals", "frames", "wall s", "train s", "eval s",
+                   "subnormal parameters at the end"], runs),
+            "",
+            *[f"- {line}" for line in run_lines],
+        ]  # fmt: skip
+    publish_section("\n".join(report).rstrip("\n") + "\n", args.append)
 
 
 if __name__ == "__main__":
