@@ -41,7 +41,7 @@ def set_threads(threads: int | str, device: torch.device) -> None:
 
     It also flushes subnormal floats (below 1.2e-38) to zero on the calling thread, where torch
     runs its ops with one thread (``torch.set_flush_denormal``; x86 and ARM CPUs): weights that
-    weight decay shrinks into that range made MBRL's planner 4x slower on a CPU
+    weight decay shrinks into that range made MBRL's planner up to 6x slower on a CPU
     (benchmarks/denormals.py), and no result here depends on numbers that small."""
     check(
         threads == "auto" or (type(threads) is int and threads >= 0),
