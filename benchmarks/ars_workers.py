@@ -8,7 +8,8 @@ every policy had before (eight chunks per worker). Per run: the one-off cost (st
 worker processes and env copies, plus the first iteration, which runs cold in any process) and
 the mean seconds of the iterations after it (those that time the workers against this process
 included); each cell is the median over ``--repeats`` interleaved rounds. Ratio: seconds per
-iteration with 2 workers ÷ with 1 (below 1: the workers are faster).
+iteration with 2 workers ÷ with 1 (below 1: the workers are faster). ``--backend``: the envs'
+(``auto``, the default, is EnvPool where it runs the id; the table says which ran).
 
     python benchmarks/ars_workers.py --iterations 60 --repeats 3 --append BENCHMARKS.md
 """
@@ -27,6 +28,7 @@ from torch import nn
 
 from rlpipe import ARSConfig, ARSSearch, EnvConfig, make_env
 from rlpipe.algos.ars import make_ars_policy, pool
+from rlpipe.envs.backends import backend_of
 
 
 class LayerNormMLP(nn.Module):
@@ -71,7 +73,7 @@ def seconds_per_iteration(
 ) -> tuple[float, float]:
     """Seconds of start-up plus the first ARS iteration (16 directions), and the mean seconds
     of the iterations after it."""
-    env_cfg = EnvConfig(id=env_id)
+    env_cfg = EnvConfig(id=env_id, backend=args.backend)
     probe = make_env(env_cfg)
     size, outputs = probe.observation_spec["observation"].shape[-1], None
     spec = probe.action_spec_unbatched
@@ -113,6 +115,7 @@ def main() -> None:
     p.add_argument("--iterations", type=int, default=60)
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--max-steps", type=int, default=1000)
+    p.add_argument("--backend", choices=["auto", "gymnasium", "envpool"], default="auto")
     args = p.parse_args()
     cells: dict[tuple[str, str, str], list[tuple[float, float]]] = {}
     load_before = os.getloadavg()
@@ -132,6 +135,7 @@ def main() -> None:
             rows.append(
                 [
                     env_id,
+                    backend_of(EnvConfig(id=env_id, backend=args.backend)),
                     network,
                     f"{first_one:.3f}",
                     f"{first_two:.3f}",
@@ -144,7 +148,7 @@ def main() -> None:
             )
     head = section_head(
         "ARS workers vs one process, by policy",
-        ["torch", "torchrl", "gymnasium"],
+        ["torch", "torchrl", "gymnasium", "envpool"],
         load_span(load_before, os.getloadavg()),
         f"{args.iterations} iterations, median of {args.repeats} interleaved round(s)",
     )
@@ -154,6 +158,7 @@ def main() -> None:
             table(
                 [
                     "env",
+                    "env backend",
                     "policy network",
                     "start-up + 1st iteration s, 1 worker",
                     "start-up + 1st iteration s, 2 workers",
