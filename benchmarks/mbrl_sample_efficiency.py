@@ -4,7 +4,8 @@ reaches a target, MBRL side by side with ARS and REINFORCE on the same envs and 
 - Pendulum-v1, target: mean return >= -250 over ``--eval-episodes`` (10) greedy episodes.
   MBRL: ``+experiment=mbrl_pendulum`` (the algo defaults), evaluated every ``--pendulum-eval``
   frames up to ``--pendulum-frames``; ARS (``algo.workers=1``) and REINFORCE
-  (``env.num_envs=10``: 10 episodes stepped as one batch) with their defaults, evaluated after
+  (``env.num_envs=10``: 10 episodes stepped as one batch) with their defaults (``~tuned``: not
+  the presets an algo x env pair picks by itself), evaluated after
   every iteration/epoch up to ``--baseline-frames``.
 - The notebook's continuous CartPole (50-step horizon), target 50: MBRL
   ``+experiment=mbrl_cartpole`` evaluated every ``--cartpole-eval`` frames up to
@@ -46,16 +47,17 @@ def main() -> None:
         # (env, target, algorithm label, overrides, eval_every, max_frames)
         ("Pendulum-v1", PENDULUM_TARGET, "MBRL (CEM)", ["+experiment=mbrl_pendulum"],
          args.pendulum_eval, args.pendulum_frames),
-        ("Pendulum-v1", PENDULUM_TARGET, "ARS", ["algo=ars", "env=pendulum", "algo.workers=1"],
-         0, args.baseline_frames),
+        ("Pendulum-v1", PENDULUM_TARGET, "ARS",
+         ["algo=ars", "env=pendulum", "~tuned", "algo.workers=1"], 0, args.baseline_frames),
         ("Pendulum-v1", PENDULUM_TARGET, "REINFORCE",
-         ["algo=reinforce", "env=pendulum", "env.num_envs=10"], 0, args.baseline_frames),
+         ["algo=reinforce", "env=pendulum", "~tuned", "env.num_envs=10"], 0, args.baseline_frames),
         ("continuous CartPole", CARTPOLE_TARGET, "MBRL (CEM)", ["+experiment=mbrl_cartpole"],
          args.cartpole_eval, args.cartpole_frames),
         ("continuous CartPole", CARTPOLE_TARGET, "ARS",
-         ["algo=ars", "env=cartpole_continuous", "algo.workers=1"], 0, args.baseline_frames),
+         ["algo=ars", "env=cartpole_continuous", "~tuned", "algo.workers=1"],
+         0, args.baseline_frames),
         ("continuous CartPole", CARTPOLE_TARGET, "REINFORCE",
-         ["algo=reinforce", "env=cartpole_continuous"], 0, args.baseline_frames),
+         ["algo=reinforce", "env=cartpole_continuous", "~tuned"], 0, args.baseline_frames),
     ]  # fmt: skip
     rows = []
     for env_name, target, label, overrides, eval_every, max_frames in runs:

@@ -1,5 +1,5 @@
-"""benchmarks/common.py's time_ars (ars_throughput.py, ars_ray_scaling.py): rlpipe's ARS with
-the notebook's settings, as the reference loop has them, not the preset the main job picks."""
+"""The benchmarks that race rlpipe against the notebooks' loops run the notebooks' settings
+(``~tuned``), not the tuned presets an algo x env pair picks by itself."""
 
 from __future__ import annotations
 
@@ -28,3 +28,16 @@ def test_time_ars_runs_the_notebooks_settings(monkeypatch):
     assert (algo.num_directions, algo.num_best) == (hp.num_deltas, hp.num_best_deltas)
     assert (algo.step_size, algo.noise) == (hp.learning_rate, hp.noise)
     assert algo.step_size_end is None and algo.episode_length == hp.episode_length
+
+
+def test_reinforce_cartpoles_notebook_row_runs_the_notebooks_settings():
+    """reinforce_cartpole.py's "notebook defaults" row: reference_reinforce.py's settings (no
+    value baseline, Adam at 1e-3), not the preset that algo=reinforce env=cartpole_continuous
+    picks by itself."""
+    from rlpipe import compose_run
+
+    with benchmarks_importable():
+        overrides = importlib.import_module("reinforce_cartpole").CONTINUOUS["notebook defaults"]
+    algo = compose_run(*overrides).algo
+    assert (algo.baseline, algo.lr, algo.weight_decay) == ("none", 1e-3, 1e-4)
+    assert (algo.episodes_per_epoch, algo.updates_per_epoch, algo.batch_size) == (100, 50, 128)
