@@ -3,8 +3,9 @@
 For every run dir given, ``python -m rlpipe.evaluate run_dir=<run> episodes=N backend=<b>`` on
 each backend (the same evaluation seed), then one row: the mean return on each with its 95%
 bootstrap CI, the difference of the means with its CI, and whether each mean lies inside the
-other's CI. Evaluations already written (``<run>/evaluation/parity-<backend>.json``) are read
-back, so a call with the same run dirs continues.
+other's CI. Evaluations already written
+(``<run>/evaluation/parity-<backend>-<episodes>-seed<seed>.json``) are read back, so a call
+with the same run dirs, episodes and seed continues.
 
     python benchmarks/backend_parity.py RUN [RUN ...] --append BENCHMARKS.md
 """
@@ -28,7 +29,7 @@ BACKENDS = ("gymnasium", "envpool")
 
 def evaluation(run: Path, backend: str, episodes: int, seed: int) -> list[float]:
     """The returns of ``episodes`` greedy episodes of ``run``'s newest checkpoint on ``backend``."""
-    out = run / "evaluation" / f"parity-{backend}.json"
+    out = run / "evaluation" / f"parity-{backend}-{episodes}-seed{seed}.json"  # one per call
     if not out.exists():
         command = [sys.executable, "-m", "rlpipe.evaluate", f"run_dir={run}"]
         command += [f"episodes={episodes}", f"backend={backend}", f"seed={seed}", f"out={out}"]
