@@ -28,7 +28,17 @@ import os
 import time
 from statistics import median
 
-from common import busy, load_span, parser, publish_section, script, section_head, table, time_ars
+from common import (
+    busy,
+    load_span,
+    parser,
+    publish_section,
+    ratio_cell,
+    script,
+    section_head,
+    table,
+    time_ars,
+)
 from reference_ars import HP, ARSTrainer
 
 
@@ -118,11 +128,6 @@ def main() -> None:
     def rate_ratios(rounds: list[dict], name: str, base: str) -> list[float]:
         return [rate(r[name]) / rate(r[base]) for r in rounds]
 
-    def spread(ratios: list[float]) -> str:
-        return f"{median(ratios):.2f}×" + (
-            f" ({min(ratios):.2f}–{max(ratios):.2f})" if len(ratios) > 1 else ""
-        )
-
     names = [reference, ceiling, *rlpipe]
     of_ceiling = []
     for condition in args.conditions:
@@ -132,7 +137,7 @@ def main() -> None:
             for name in parallel:
                 of_ceiling.append(
                     f"{BESIDE[condition]}, seed {seed}, {name.removeprefix('rlpipe ARS, ')} "
-                    + spread(rate_ratios(rounds, name, ceiling))
+                    + ratio_cell(rate_ratios(rounds, name, ceiling))
                 )
             for name in names:
                 done = [r[name] for r in rounds]
@@ -146,7 +151,7 @@ def main() -> None:
                         f"{median(r['startup'] for r in done):.1f}",
                         f"{median(r['cpu'] / r['steps'] for r in done) * 1e6:.0f}",
                         f"{median(rate(r) for r in done):,.0f}",
-                        spread(rate_ratios(rounds, name, reference)),
+                        ratio_cell(rate_ratios(rounds, name, reference)),
                     ]
                 )
     head = section_head(

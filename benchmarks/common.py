@@ -8,6 +8,7 @@ import os
 import platform
 import re
 import shlex
+import statistics
 import subprocess
 import sys
 import time
@@ -101,6 +102,13 @@ def machine(packages: Sequence[str]) -> str:
         f"{os.cpu_count()} cores · "
         f"Python {platform.python_version()} · " + ", ".join(versions)
     )
+
+
+def ratio_cell(ratios: Sequence[float]) -> str:
+    """A ratio's median over rounds with its range, e.g. ``1.85× (1.74–1.90)`` (one round: no
+    range)."""
+    middle = f"{statistics.median(ratios):.2f}×"
+    return middle + (f" ({min(ratios):.2f}–{max(ratios):.2f})" if len(ratios) > 1 else "")
 
 
 def table(headers: Sequence[str], rows: Sequence[Sequence[object]]) -> str:

@@ -31,7 +31,6 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Sequence
 from pathlib import Path
 
 import torch
@@ -132,16 +131,16 @@ def measure(run_dir: Path, rounds: int, episodes: int) -> tuple[list[list[object
     return rows, line
 
 
-def whole_run(seed: int, extra: Sequence[str] = ()) -> tuple[list[list[object]], str]:
-    """Table rows for ``mbrl_pendulum`` trained with subnormals flushed, then kept (``extra``:
-    more overrides), and a line comparing their evals."""
+def whole_run(seed: int) -> tuple[list[list[object]], str]:
+    """Table rows for ``mbrl_pendulum`` trained with subnormals flushed, then kept, and a line
+    comparing their evals."""
     rows, evals, seconds = [], {}, []
     with tempfile.TemporaryDirectory() as tmp:
         for flush in FLUSH:
             run_dir = Path(tmp) / ("flushed" if flush else "kept")
             head = [sys.executable, "-m", "rlpipe"] if flush else [sys.executable, "-c", KEEP]
             args = ["+experiment=mbrl_pendulum", f"seed={seed}", "progress=false",
-                    f"hydra.run.dir={run_dir}", *extra]  # fmt: skip
+                    f"hydra.run.dir={run_dir}"]  # fmt: skip
             subprocess.run([*head, *args], check=True, capture_output=True)
             summary = json.loads((run_dir / "summary.json").read_text())
             train = read_scalar(run_dir, "time/train_seconds")[-1][1]

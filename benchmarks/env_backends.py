@@ -29,7 +29,7 @@ from pathlib import Path
 from statistics import median
 from typing import Any
 
-from common import busy, machine, publish_section, script, table
+from common import busy, machine, publish_section, ratio_cell, script, table
 
 BACKENDS = ("gymnasium", "envpool")
 CONDITIONS = ("alone", "beside a busy core")
@@ -175,10 +175,6 @@ def rate(record: dict) -> float:
 
 def cell(values: list[float], digits: int = 0) -> str:
     return f"{median(values):,.{digits}f}"
-
-
-def ratio_cell(ratios: list[float]) -> str:
-    return f"{median(ratios):.2f}× ({min(ratios):.2f}–{max(ratios):.2f})"
 
 
 def report(records: list[dict], rounds: int) -> str:
