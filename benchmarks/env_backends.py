@@ -3,12 +3,15 @@
 One preset per env and algorithm, each measured in a fresh process (this script with
 ``--measure``) that builds it as ``python -m rlpipe +experiment=<preset> env.backend=<b>`` does
 (the run's threads, its env factory and seeds, ARS's workers started first), then times
-``train_step`` until a frame or iteration budget: env steps per wall second of the training
-loop, updates included (not the raw env). The main job, ``python -m rlpipe algo=ars
-env=bipedal`` (a frame budget, no evaluation but the final one-episode one), is timed whole
-beside the notebook's loop (``reference_ars.py``). Backends take turns within every round
-(A B A B ...), the rounds run alone and then beside a CPU-bound competitor (``python -c "while
-True: pass"``); a cell is the median over rounds, a ratio the median of the rounds' ratios.
+``train_step`` for a frame or iteration budget: env steps per wall second of the training
+loop, updates included (not the raw env). DQN and SAC presets are timed from their
+``algo.learning_starts`` on, as they spend nearly all their frames: the random-action start
+before it (all of a 1,000-frame budget for ``sac_bipedal``, which starts at 10,000) is untimed.
+The main job, ``python -m rlpipe algo=ars env=bipedal`` (a frame budget, no evaluation but the
+final one-episode one), is timed whole beside the notebook's loop (``reference_ars.py``).
+Backends take turns within every round (A B A B ...), the rounds run alone and then beside a
+CPU-bound competitor (``python -c "while True: pass"``); a cell is the median over rounds, a
+ratio the median of the rounds' ratios.
 Each measurement is saved to ``--state`` as it ends: a call with the same file continues.
 
     python benchmarks/env_backends.py --rounds 3 --append BENCHMARKS.md
@@ -33,23 +36,24 @@ from common import busy, machine, publish_section, ratio_cell, script, table
 
 BACKENDS = ("gymnasium", "envpool")
 CONDITIONS = ("alone", "beside a busy core")
-# preset -> (the env and its copies, as the table names them; budget: frames or ARS iterations)
+# preset -> (the env and its copies, as the table names them; budget: frames or ARS iterations,
+# timed after an off-policy preset's learning_starts frames: about 2 s or more of its updates)
 PRESETS = {
     "ars_bipedal": ("BipedalWalker-v3, 64 episodes", ("iterations", 1)),
     # from a walking policy (WALKER): the phase where a 16 M-frame run spends most of its frames
     "ars_bipedal:walking": ("BipedalWalker-v3, from a walking policy", ("iterations", 2)),
     "ars_pendulum": ("Pendulum-v1, ARS", ("iterations", 20)),
     "ars_cartpole": ("CartPole-v1, ARS", ("iterations", 10)),
-    "dqn_cartpole": ("CartPole-v1 ×16, DQN", ("frames", 3_000)),
+    "dqn_cartpole": ("CartPole-v1 ×16, DQN", ("frames", 8_192)),
     # 40 updates: where most seeds' runs reach 500 (the span a time to the target measures)
     "ppo_cartpole": ("CartPole-v1 ×16, PPO", ("frames", 20_480)),
     "ppo_lunarlander": ("LunarLander-v3 ×16, PPO", ("frames", 16_384)),
     "dqn_lunarlander": ("LunarLander-v3 ×8, DQN", ("frames", 3_000)),
-    "dqn_mountaincar": ("MountainCar-v0 ×8, DQN", ("frames", 3_000)),
+    "dqn_mountaincar": ("MountainCar-v0 ×8, DQN", ("frames", 6_144)),
     "dqn_acrobot": ("Acrobot-v1 ×8, DQN", ("frames", 3_000)),
     "sac_pendulum": ("Pendulum-v1, SAC", ("frames", 1_000)),
-    "sac_bipedal": ("BipedalWalker-v3, SAC", ("frames", 1_000)),
-    "sac_mountaincar_continuous": ("MountainCarContinuous-v0, SAC", ("frames", 1_000)),
+    "sac_bipedal": ("BipedalWalker-v3, SAC", ("frames", 512)),
+    "sac_mountaincar_continuous": ("MountainCarContinuous-v0, SAC", ("frames", 2_000)),
 }
 MAIN_JOB = ["algo=ars", "env=bipedal"]
 MAIN_FRAMES = 150_000
@@ -90,10 +94,15 @@ def measure(preset: str, backend: str) -> dict:
     try:
         if hasattr(algo, "search"):
             algo.search.start()  # its workers or pool, started before the clock
-        start = time.perf_counter()
-        while (algo.iterations if unit == "iterations" else algo.frames) < budget:
+        warmup = getattr(cfg.algo, "learning_starts", 0)  # off-policy: its random-action start
+        while algo.frames < warmup:
             algo.train_step()
-        return {"steps": algo.frames, "seconds": time.perf_counter() - start}
+        done = algo.iterations if unit == "iterations" else algo.frames
+        frames, start = algo.frames, time.perf_counter()
+        while (algo.iterations if unit == "iterations" else algo.frames) < done + budget:
+            algo.train_step()
+        seconds = time.perf_counter() - start
+        return {"steps": algo.frames - frames, "seconds": seconds, "from": frames}
     finally:
         algo.close()
 
@@ -237,7 +246,9 @@ def report(records: list[dict], rounds: int) -> str:
             f"- command: `python benchmarks/env_backends.py --rounds {rounds}`; 1-min load "
             f"average before each measurement: {load_text}",
             "- env steps/s of the training loop (updates included; ARS: rollouts and the "
-            "update, workers started before the clock), each in a fresh process built as "
+            "update, workers started before the clock; DQN and SAC: timed from their "
+            "`algo.learning_starts`, past the random-action start), each in a fresh process "
+            "built as "
             "`python -m rlpipe +experiment=<preset> env.backend=<b> seed=0` builds it; median "
             f"of {rounds} interleaved rounds; ratio: EnvPool ÷ gymnasium, median (range) of "
             'the rounds\' ratios; busy core: `python -c "while True: pass"` beside it',

@@ -114,7 +114,7 @@ def compose_run(*overrides: str) -> Config:
     register_configs()
     with initialize_config_module(config_module="rlpipe.conf", version_base="1.3"):
         cfg = compose("config", overrides=open_entries(overrides), return_hydra_config=True)
-    check_choices(cfg.hydra.runtime.choices)
+    check_choices(cfg.hydra.runtime.choices, OmegaConf.select(cfg, "env.id", default=None))
     return to_config(without_hydra(cfg))
 
 
@@ -125,9 +125,11 @@ def without_hydra(cfg: DictConfig) -> DictConfig:
     return cfg
 
 
-def check_choices(choices: DictConfig) -> None:
+def check_choices(choices: DictConfig, env_id: str | None) -> None:
     """A ``+experiment=<preset>`` names its algo and env: an ``algo=`` or ``env=`` that
-    contradicts them is refused in one line (it would run something else under its name)."""
+    contradicts them is refused in one line (it would run something else under its name), as is
+    an ``env.id=`` other than the env option's own where tuned settings were picked for it."""
+    check_tuned_id(choices, env_id)
     preset = choices.get("experiment")
     if not preset:
         return
@@ -146,6 +148,37 @@ def check_choices(choices: DictConfig) -> None:
             f"{group}={choices.get(group)} was asked for: drop one of them (the tuned settings "
             f"of any algo x env are picked by algo=... env=... alone)",
         )
+
+
+def env_option_id(option: str) -> str | None:
+    """The id that ``conf/env/<option>.yaml`` (or a plug-in's) sets; None where it sets none."""
+    source = ALGORITHMS.conf_file("env", option)
+    if source is None:
+        return None
+    env_id = OmegaConf.select(OmegaConf.load(source), "id", default=None)
+    return env_id if isinstance(env_id, str) else None
+
+
+def check_tuned_id(choices: DictConfig, env_id: str | None) -> None:
+    """Tuned settings belong to their env option's id: ``env.id=`` another id beside them is
+    refused in one line, naming the env option of that id, if any, and ``~tuned``."""
+    tuned, env = choices.get("tuned"), choices.get("env")
+    if not tuned or ALGORITHMS.conf_file("tuned", tuned) is None or env_id is None:
+        return
+    own = env_option_id(env)
+    if own is None or own == env_id:
+        return
+    algo = choices.get("algo")
+    same = [o for o in ALGORITHMS.conf_options("env") if o != env and env_option_id(o) == env_id]
+    fix = f"add ~tuned ({algo}'s defaults)"
+    if same and ALGORITHMS.conf_file("tuned", f"{algo}_{same[0]}") is not None:
+        fix = f"use env={same[0]} (tuned/{algo}_{same[0]}.yaml) or {fix}"
+    elif same:
+        fix = f"use env={same[0]} ({algo}'s defaults there)"
+    raise RlpipeError(
+        f"env.id={env_id} with env={env}: the tuned settings picked for algo={algo} env={env} "
+        f"(tuned/{tuned}.yaml) are {own}'s; for {env_id} {fix}"
+    )
 
 
 # envs on which an algorithm's own defaults are known to fail, and why: the run says so at start

@@ -176,7 +176,7 @@ def validate_overrides(argv: Sequence[str]) -> DictConfig:
             overrides.append(arg)
     with initialize_config_module("rlpipe.conf", version_base="1.3"):
         cfg = compose("config", overrides=overrides, return_hydra_config=True)
-    check_choices(cfg.hydra.runtime.choices)
+    check_choices(cfg.hydra.runtime.choices, OmegaConf.select(cfg, "env.id", default=None))
     cfg = without_hydra(cfg)
     to_config(cfg.copy())
     return cfg
@@ -191,7 +191,7 @@ def task(cfg: DictConfig) -> float | None:
     run_dir = hydra_cfg.runtime.output_dir
 
     def job() -> RunResult:
-        check_choices(hydra_cfg.runtime.choices)
+        check_choices(hydra_cfg.runtime.choices, OmegaConf.select(cfg, "env.id", default=None))
         config = to_config(cfg)  # checked before torch loads (with the pipeline, below)
         notice = tuned_notice(hydra_cfg.runtime.choices) or trap_notice(config.algo, config.env.id)
         if notice:

@@ -24,3 +24,13 @@ def test_the_walking_start_walks():
     result = evaluate(policy, make_env(env_cfg, num_envs=2, seed=5), episodes=2)
     # it walks (about 300; a zero policy stands at about -90), though some episodes fall
     assert max(result.returns) > 250
+
+
+def test_off_policy_presets_are_timed_past_their_random_action_start(monkeypatch):
+    """A DQN preset's clock starts at its learning_starts: the window holds its updates."""
+    with benchmarks_importable():
+        module = importlib.import_module("env_backends")
+    monkeypatch.setitem(module.PRESETS, "dqn_cartpole", ("CartPole-v1 ×16, DQN", ("frames", 256)))
+    result = module.measure("dqn_cartpole", "gymnasium")
+    starts = compose_run("+experiment=dqn_cartpole").algo.learning_starts
+    assert result["from"] >= starts == 1000 and 256 <= result["steps"] < 256 + 128

@@ -11,7 +11,7 @@ import pytest
 from conftest import TINY, assert_auto_chose_envpool, run_module
 
 from rlpipe.algos import PPOConfig, SACConfig
-from rlpipe.cli import trap_notice
+from rlpipe.cli import compose_run, trap_notice
 
 
 def test_default_job_trains_and_writes_its_run_dir(tmp_path):
@@ -105,6 +105,13 @@ def test_generic_gym_entry(rlpipe_cli):
     assert proc.returncode == 0, proc.stderr
 
 
+def test_another_id_runs_where_no_tuned_settings_were_picked():
+    """env.id= beside tuned settings is refused (BAD_INPUTS); without them it is the run's id."""
+    assert compose_run("~tuned", "env.id=Acrobot-v1").env.id == "Acrobot-v1"
+    assert compose_run("algo=reinforce", "env.id=Acrobot-v1").env.id == "Acrobot-v1"
+    assert compose_run("env.id=CartPole-v1").algo == compose_run("+experiment=dqn_cartpole").algo
+
+
 def test_multirun_sweeps_seeds(tmp_path):
     proc = run_module(
         "rlpipe", "-m", *TINY, "seed=0,1", f"hydra.sweep.dir={tmp_path / 'sweep'}", cwd=tmp_path
@@ -130,6 +137,14 @@ BAD_INPUTS = [
     (["algo.lr=fast"], "could not be converted to Float"),
     (["+experiment=dqn_cartpole", "env=pendulum"], "+experiment=dqn_cartpole is dqn on env=cartp"),
     (["+experiment=dqn_lunarlander", "algo=ppo"], "but algo=ppo was asked for: drop one of them"),
+    (
+        ["env.id=Acrobot-v1"],  # env=cartpole's tuned DQN is CartPole-v1's
+        "are CartPole-v1's; for Acrobot-v1 use env=acrobot (tuned/dqn_acrobot.yaml) or add ~tuned",
+    ),
+    (
+        ["+experiment=ars_bipedal", "env.id=BipedalWalkerHardcore-v3"],
+        "(tuned/ars_bipedal.yaml) are BipedalWalker-v3's; for BipedalWalkerHardcore-v3 add ~tuned",
+    ),
     (["env=bipedal"], "DQN needs a discrete action space"),
     (["total_frames=0"], "total_frames must be >= 1"),
     (["total_frames=-100"], "total_frames must be >= 1"),

@@ -137,6 +137,7 @@ def test_an_image_run_trains_evaluates_and_resumes_through_the_cli(tmp_path):
     args = [
         *TINY,
         "algo=ppo",
+        "env=gym",
         "env.id=obs_envs:rlpipe-test/Image-v0",
         "env.num_envs=2",
         "algo.frames_per_batch=64",
