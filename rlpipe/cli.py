@@ -155,7 +155,8 @@ def env_option_id(option: str) -> str | None:
     source = ALGORITHMS.conf_file("env", option)
     if source is None:
         return None
-    env_id = OmegaConf.select(OmegaConf.load(source), "id", default=None)
+    node = OmegaConf.load(source)
+    env_id = OmegaConf.select(node, "id", default=None, throw_on_resolution_failure=False)
     return env_id if isinstance(env_id, str) else None
 
 
