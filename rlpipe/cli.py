@@ -152,12 +152,19 @@ def check_choices(choices: DictConfig, env_id: str | None) -> None:
 
 def env_option_id(option: str) -> str | None:
     """The id that ``conf/env/<option>.yaml`` (or a plug-in's) sets; None where it sets none."""
+    return env_option(option)[0]
+
+
+def env_option(option: str) -> tuple[str | None, dict]:
+    """The id and ``kwargs`` that ``conf/env/<option>.yaml`` (or a plug-in's) sets."""
     source = ALGORITHMS.conf_file("env", option)
     if source is None:
-        return None
+        return None, {}
     node = OmegaConf.load(source)
     env_id = OmegaConf.select(node, "id", default=None, throw_on_resolution_failure=False)
-    return env_id if isinstance(env_id, str) else None
+    kwargs = node.get("kwargs")
+    kwargs = OmegaConf.to_container(kwargs) if isinstance(kwargs, DictConfig) else {}
+    return (env_id if isinstance(env_id, str) else None), kwargs
 
 
 def check_tuned_id(choices: DictConfig, env_id: str | None) -> None:
@@ -223,6 +230,24 @@ def tuned_notice(choices: DictConfig) -> str | None:
         f"rlpipe: {algo} on env={choices.get('env')} with its tuned settings ({where}); the "
         "algorithm's own defaults instead: add ~tuned"
     )
+
+
+def tuned_elsewhere_notice(choices: DictConfig, env: EnvConfig) -> str | None:
+    """The line a run on the algorithm's defaults starts with where another env option of the
+    same env (id and kwargs) has tuned settings for it (``env=gym env.id=CartPole-v1``); None
+    elsewhere and under ``~tuned``."""
+    tuned, option, algo = choices.get("tuned"), choices.get("env"), choices.get("algo")
+    if not tuned or ALGORITHMS.conf_file("tuned", tuned) is not None:
+        return None
+    for other in ALGORITHMS.conf_options("env"):
+        if other == option or ALGORITHMS.conf_file("tuned", f"{algo}_{other}") is None:
+            continue
+        if env_option(other) == (env.id, dict(env.kwargs)):
+            return (
+                f"rlpipe: note: {algo}'s own defaults on {env.id}; env={other} instead of "
+                f"env={option} picks its tuned settings (tuned/{algo}_{other}.yaml)"
+            )
+    return None
 
 
 def compose_config(name: str, overrides: Sequence[str]) -> Any:

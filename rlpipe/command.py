@@ -33,6 +33,7 @@ from rlpipe.cli import (
     register_sweeper,
     to_config,
     trap_notice,
+    tuned_elsewhere_notice,
     tuned_notice,
     without_hydra,
 )
@@ -193,7 +194,12 @@ def task(cfg: DictConfig) -> float | None:
     def job() -> RunResult:
         check_choices(hydra_cfg.runtime.choices, OmegaConf.select(cfg, "env.id", default=None))
         config = to_config(cfg)  # checked before torch loads (with the pipeline, below)
-        notice = tuned_notice(hydra_cfg.runtime.choices) or trap_notice(config.algo, config.env.id)
+        choices = hydra_cfg.runtime.choices
+        notice = (
+            tuned_notice(choices)
+            or trap_notice(config.algo, config.env.id)
+            or tuned_elsewhere_notice(choices, config.env)
+        )
         if notice:
             say(notice)
         RunDir(config.resume or run_dir).precheck(required=bool(config.resume))

@@ -6,12 +6,15 @@ import json
 import os
 import subprocess
 import sys
+from dataclasses import replace
 
 import pytest
 from conftest import TINY, assert_auto_chose_envpool, run_module
+from omegaconf import OmegaConf
 
 from rlpipe.algos import PPOConfig, SACConfig
-from rlpipe.cli import compose_run, trap_notice
+from rlpipe.cli import compose_run, trap_notice, tuned_elsewhere_notice
+from rlpipe.config import EnvConfig
 
 
 def test_default_job_trains_and_writes_its_run_dir(tmp_path):
@@ -290,6 +293,22 @@ def test_a_pair_with_tuned_settings_runs_them_and_says_so(rlpipe_cli, tmp_path):
     assert first.startswith("rlpipe: ppo on env=cartpole with its tuned settings")
     assert "conf/tuned/ppo_cartpole.yaml" in first and "add ~tuned" in first
     assert "num_envs: 16" in (tmp_path / "run" / "config.yaml").read_text()
+
+
+def test_tuned_settings_of_the_same_env_under_another_option_are_named_at_start(rlpipe_cli):
+    """``env=gym env.id=CartPole-v1`` runs DQN's defaults and says which option picks the tuned
+    settings of that env (the RL Zoo picks them by id); another env's kwargs or ``~tuned``: not."""
+    first = first_line(rlpipe_cli, "env=gym", "env.id=CartPole-v1")
+    assert first == (
+        "rlpipe: note: dqn's own defaults on CartPole-v1; env=cartpole instead of env=gym picks "
+        "its tuned settings (tuned/dqn_cartpole.yaml)"
+    )
+    choices = OmegaConf.create({"algo": "ars", "env": "bipedal_hardcore", "tuned": "ars_x"})
+    hardcore = EnvConfig(id="BipedalWalker-v3", kwargs={"hardcore": True})
+    assert tuned_elsewhere_notice(choices, hardcore) is None  # bipedal's settings: another task
+    plain = replace(hardcore, kwargs={})
+    assert "env=bipedal instead of env=bipedal_hardcore" in tuned_elsewhere_notice(choices, plain)
+    assert tuned_elsewhere_notice(OmegaConf.create({"algo": "ars", "env": "gym"}), plain) is None
 
 
 def test_a_known_exploration_trap_is_named_at_start(rlpipe_cli):
