@@ -150,13 +150,9 @@ def check_choices(choices: DictConfig, env_id: str | None) -> None:
         )
 
 
-def env_option_id(option: str) -> str | None:
-    """The id that ``conf/env/<option>.yaml`` (or a plug-in's) sets; None where it sets none."""
-    return env_option(option)[0]
-
-
 def env_option(option: str) -> tuple[str | None, dict]:
-    """The id and ``kwargs`` that ``conf/env/<option>.yaml`` (or a plug-in's) sets."""
+    """The id (None where it sets none) and ``kwargs`` that ``conf/env/<option>.yaml`` (or a
+    plug-in's) sets."""
     source = ALGORITHMS.conf_file("env", option)
     if source is None:
         return None, {}
@@ -173,11 +169,11 @@ def check_tuned_id(choices: DictConfig, env_id: str | None) -> None:
     tuned, env = choices.get("tuned"), choices.get("env")
     if not tuned or ALGORITHMS.conf_file("tuned", tuned) is None or env_id is None:
         return
-    own = env_option_id(env)
+    own = env_option(env)[0]
     if own is None or own == env_id:
         return
     algo = choices.get("algo")
-    same = [o for o in ALGORITHMS.conf_options("env") if o != env and env_option_id(o) == env_id]
+    same = [o for o in ALGORITHMS.conf_options("env") if o != env and env_option(o)[0] == env_id]
     fix = f"add ~tuned ({algo}'s defaults)"
     if same and ALGORITHMS.conf_file("tuned", f"{algo}_{same[0]}") is not None:
         fix = f"use env={same[0]} (tuned/{algo}_{same[0]}.yaml) or {fix}"
