@@ -97,9 +97,9 @@ def measure(preset: str, backend: str) -> dict:
         warmup = getattr(cfg.algo, "learning_starts", 0)  # off-policy: its random-action start
         while algo.frames < warmup:
             algo.train_step()
-        done = algo.iterations if unit == "iterations" else algo.frames
-        frames, start = algo.frames, time.perf_counter()
-        while (algo.iterations if unit == "iterations" else algo.frames) < done + budget:
+        done = partial(getattr, algo, unit)  # iterations or frames so far
+        end, frames, start = done() + budget, algo.frames, time.perf_counter()
+        while done() < end:
             algo.train_step()
         seconds = time.perf_counter() - start
         return {"steps": algo.frames - frames, "seconds": seconds, "from": frames}

@@ -163,6 +163,12 @@ def env_option(option: str) -> tuple[str | None, dict]:
     return (env_id if isinstance(env_id, str) else None), kwargs
 
 
+def other_options(option: str, env_id: str) -> list[tuple[str, dict]]:
+    """The env options other than ``option`` that set ``env_id``, each with its ``kwargs``."""
+    found = [(o, env_option(o)) for o in ALGORITHMS.conf_options("env") if o != option]
+    return [(o, kwargs) for o, (their_id, kwargs) in found if their_id == env_id]
+
+
 def check_tuned_id(choices: DictConfig, env_id: str | None) -> None:
     """Tuned settings belong to their env option's id: ``env.id=`` another id beside them is
     refused in one line, naming the env option of that id, if any, and ``~tuned``."""
@@ -173,7 +179,7 @@ def check_tuned_id(choices: DictConfig, env_id: str | None) -> None:
     if own is None or own == env_id:
         return
     algo = choices.get("algo")
-    same = [o for o in ALGORITHMS.conf_options("env") if o != env and env_option(o)[0] == env_id]
+    same = [o for o, _ in other_options(env, env_id)]
     fix = f"add ~tuned ({algo}'s defaults)"
     if same and ALGORITHMS.conf_file("tuned", f"{algo}_{same[0]}") is not None:
         fix = f"use env={same[0]} (tuned/{algo}_{same[0]}.yaml) or {fix}"
@@ -235,10 +241,8 @@ def tuned_elsewhere_notice(choices: DictConfig, env: EnvConfig) -> str | None:
     tuned, option, algo = choices.get("tuned"), choices.get("env"), choices.get("algo")
     if not tuned or ALGORITHMS.conf_file("tuned", tuned) is not None:
         return None
-    for other in ALGORITHMS.conf_options("env"):
-        if other == option or ALGORITHMS.conf_file("tuned", f"{algo}_{other}") is None:
-            continue
-        if env_option(other) == (env.id, dict(env.kwargs)):
+    for other, kwargs in other_options(option, env.id):
+        if kwargs == env.kwargs and ALGORITHMS.conf_file("tuned", f"{algo}_{other}") is not None:
             return (
                 f"rlpipe: note: {algo}'s own defaults on {env.id}; env={other} instead of "
                 f"env={option} picks its tuned settings (tuned/{algo}_{other}.yaml)"
