@@ -186,6 +186,17 @@ def cell(values: list[float], digits: int = 0) -> str:
     return f"{median(values):,.{digits}f}"
 
 
+def auto_backend(preset: str) -> str:
+    """The backend ``env.backend=auto`` (the preset's default, unless it names one) picks for
+    ``preset`` here, as a run resolves it."""
+    from rlpipe.cli import compose_run
+    from rlpipe.envs.backends import resolve_backend
+
+    cfg = compose_run(f"+experiment={preset}").resolved()
+    copies = cfg.algo.stepped_copies(cfg.env.num_envs)
+    return resolve_backend(cfg.env, copies=copies)[0].backend
+
+
 def report(records: list[dict], rounds: int) -> str:
     """The Markdown section: per preset and condition, each backend's env steps/s and the ratio;
     the main job beside the notebook's loop."""
@@ -193,6 +204,7 @@ def report(records: list[dict], rounds: int) -> str:
     for r in records:
         by.setdefault((r["condition"], r["name"], r["backend"]), []).append(r)
     rows, main_rows, loads = [], [], {}
+    runs_on = {name: auto_backend(name.partition(":")[0]) for name in PRESETS}
     for condition in CONDITIONS:
         loads[condition] = [r["load"] for r in records if r["condition"] == condition]
         for name, (what, _) in PRESETS.items():
@@ -208,6 +220,7 @@ def report(records: list[dict], rounds: int) -> str:
                     cell([rate(g) for g in gym]),
                     cell([rate(p) for p in pool]),
                     ratio_cell(ratios),
+                    runs_on[name],
                 ]
             )
         notebook = by.get((condition, "notebook loop", "-"), [])
@@ -251,7 +264,10 @@ def report(records: list[dict], rounds: int) -> str:
             "built as "
             "`python -m rlpipe +experiment=<preset> env.backend=<b> seed=0` builds it; median "
             f"of {rounds} interleaved rounds; ratio: EnvPool ÷ gymnasium, median (range) of "
-            'the rounds\' ratios; busy core: `python -c "while True: pass"` beside it',
+            'the rounds\' ratios; busy core: `python -c "while True: pass"` beside it; '
+            "the preset runs on: the backend its `env.backend` (auto unless it names one) "
+            "takes today, EnvPool where it runs the id, but gymnasium for one env copy "
+            "(`rlpipe/envs/backends.py:resolve_backend`)",
             "",
             table(
                 [
@@ -261,6 +277,7 @@ def report(records: list[dict], rounds: int) -> str:
                     "gymnasium steps/s",
                     "EnvPool steps/s",
                     "EnvPool ÷ gymnasium",
+                    "the preset runs on",
                 ],
                 rows,
             ),

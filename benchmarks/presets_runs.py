@@ -156,10 +156,16 @@ def rlpipe_finished(out: Path, cfg: Config | None = None) -> bool:
     one ``cfg`` names: not finished), or such a run from before records held the evals."""
     meta = out / "rlpipe.json"
     if meta.is_file() and "evals" in (saved := json.loads(meta.read_text())):
-        # a backend the preset or an --override names (not auto) must be the record's
-        return cfg is None or (
-            same_identity(saved.get("config", {}), cfg)
-            and cfg.env.backend in ("auto", saved.get("backend"))
+        if cfg is None:
+            return True
+        # a backend the preset or an --override names must be the record's; auto's is EnvPool
+        # or gymnasium as the machine has EnvPool, but gymnasium for one env copy everywhere
+        backend = cfg.env.backend
+        if backend == "auto" and cfg.algo.stepped_copies(cfg.env.num_envs) == 1:
+            backend = "gymnasium"
+        return same_identity(saved.get("config", {}), cfg) and backend in (
+            "auto",
+            saved.get("backend"),
         )
     return (out / "run" / "summary.json").is_file() and bool(final_evals(out / "run"))
 

@@ -104,6 +104,12 @@ class AlgoConfig:
         an algorithm whose batches round up to whole steps of the copies says what follows)."""
         return self
 
+    def stepped_copies(self, num_envs: int) -> int:
+        """How many env copies one step of the algorithm's envs moves when the run has
+        ``num_envs``: ``env.backend=auto`` takes gymnasium's envs for one (an algorithm that
+        steps copies of its own, as ARS its population, says how many)."""
+        return num_envs
+
 
 ENV_BACKENDS = ("auto", "gymnasium", "envpool")
 DICT_OBS = ("flatten", "keys")

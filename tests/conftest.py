@@ -108,12 +108,15 @@ def benchmarks_importable() -> Iterator[None]:
         sys.path.remove(folder)
 
 
-def assert_auto_chose_envpool(stdout: str) -> None:
-    """A run's console says ``env.backend=auto`` chose EnvPool (gymnasium where EnvPool is
-    missing): for the envs EnvPool runs as gymnasium does."""
+def assert_auto_chose(stdout: str, copies: int) -> None:
+    """A run's console says what ``env.backend=auto`` chose for an env EnvPool runs as gymnasium
+    does, with ``copies`` env copies stepped at once: EnvPool (gymnasium where it is missing),
+    but gymnasium for one copy."""
     from rlpipe.envs.backends import envpool_version
 
-    backend = "envpool" if envpool_version() else "gymnasium"
+    if envpool_version() and copies == 1:
+        assert "rlpipe: env backend gymnasium (auto: one env copy " in stdout, stdout
+    backend = "envpool" if envpool_version() and copies > 1 else "gymnasium"
     assert f"rlpipe: env backend {backend} (auto" in stdout, stdout
 
 

@@ -329,6 +329,21 @@ def test_a_record_on_another_backend_stands_only_where_the_backend_is_auto(bench
     assert not runs.rlpipe_finished(tmp_path, on["gymnasium"])  # run anew on gymnasium
 
 
+def test_a_record_on_envpool_is_stale_where_auto_now_takes_gymnasium_for_one_copy(bench, tmp_path):
+    import json
+
+    from rlpipe.cli import compose_run
+
+    runs, cfg = bench.presets_runs, compose_run("+experiment=sac_mountaincar_continuous")
+    saved = {"evals": [[5_000, 90.0, 1.0]], "final": 95.0, "config": runs.identity(cfg)}
+    (tmp_path / "rlpipe.json").write_text(json.dumps({**saved, "backend": "envpool"}))
+    assert not runs.rlpipe_finished(tmp_path, cfg)  # run anew: auto takes gymnasium for it
+    pinned = compose_run("+experiment=sac_mountaincar_continuous", "env.backend=envpool")
+    assert runs.rlpipe_finished(tmp_path, pinned)
+    (tmp_path / "rlpipe.json").write_text(json.dumps({**saved, "backend": "gymnasium"}))
+    assert runs.rlpipe_finished(tmp_path, cfg)
+
+
 def test_the_aggregate_is_normalised_by_the_target(bench) -> None:
     table, report = bench.presets_table, bench.report
     cartpole, pendulum = table.PRESETS["dqn_cartpole"], table.PRESETS["sac_pendulum"]

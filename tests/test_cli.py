@@ -9,7 +9,7 @@ import sys
 from dataclasses import replace
 
 import pytest
-from conftest import TINY, assert_auto_chose_envpool, run_module
+from conftest import TINY, assert_auto_chose, run_module
 from omegaconf import OmegaConf
 
 from rlpipe.algos import PPOConfig, SACConfig
@@ -26,7 +26,7 @@ def test_default_job_trains_and_writes_its_run_dir(tmp_path):
     proc = run_module("rlpipe", *args, cwd=tmp_path, env=env, fresh=True)
     assert proc.returncode == 0, proc.stderr
     assert "final eval" in proc.stdout and str(run) in proc.stdout
-    assert_auto_chose_envpool(proc.stdout)
+    assert_auto_chose(proc.stdout, copies=1)
     assert json.loads((run / "summary.json").read_text())["frames"] == 200
     assert (run / ".hydra" / "config.yaml").exists()
     names = sorted(p.name for p in (run / "checkpoints").iterdir())

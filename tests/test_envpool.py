@@ -13,6 +13,7 @@ from tensordict.nn import TensorDictModule
 from torchrl.collectors import Collector
 from torchrl.envs.utils import check_env_specs
 
+from rlpipe.algos.configs import ARSConfig, DQNConfig
 from rlpipe.config import EnvConfig
 from rlpipe.envs import backends as env_backends
 from rlpipe.envs import envpool_env, make_env
@@ -183,6 +184,20 @@ def test_auto_picks_envpool_where_it_can_and_says_why(cfg, backend):
 def test_auto_names_the_variant_envpool_runs():
     line = resolve_backend(EnvConfig(id="BipedalWalker-v3", kwargs={"hardcore": True}))[1]
     assert " runs BipedalWalkerHardcore-v3; " in line
+
+
+@needs_envpool
+def test_auto_takes_gymnasium_for_one_env_copy():
+    one, line = resolve_backend(EnvConfig(id="MountainCarContinuous-v0"), copies=1)
+    assert one.backend == "gymnasium" and "one env copy" in line and "env.backend=envpool" in line
+    assert resolve_backend(EnvConfig(id="MountainCarContinuous-v0"), copies=2)[0].backend == (
+        "envpool"
+    )
+    asked = EnvConfig(id="MountainCarContinuous-v0", backend="envpool")
+    assert resolve_backend(asked, copies=1)[0].backend == "envpool"
+    # what a run steps at once: env.num_envs, or ARS's population whatever num_envs says
+    assert DQNConfig().stepped_copies(1) == 1 and DQNConfig().stepped_copies(8) == 8
+    assert ARSConfig(num_directions=4, num_best=4).stepped_copies(1) == 8
 
 
 def test_auto_keeps_the_backend_a_run_recorded():

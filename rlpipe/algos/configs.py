@@ -332,6 +332,10 @@ class ARSConfig(AlgoConfig):
         if isinstance(self.ray, dict):  # rebuilt from a run's config.yaml
             self.ray = RayConfig(**self.ray)
 
+    def stepped_copies(self, num_envs: int) -> int:
+        """The population's 2N episodes, stepped together whatever ``env.num_envs`` says."""
+        return 2 * self.num_directions
+
     @property
     def reward_bound(self) -> float | None:
         """The bound training rewards are clipped to (None: not clipped)."""

@@ -109,17 +109,28 @@ def backend_of(cfg: EnvConfig, render_mode: str | None = None) -> str:
     return "gymnasium" if why is not None else "envpool"
 
 
-def resolve_backend(cfg: EnvConfig, recorded: str | None = None) -> tuple[EnvConfig, str]:
+def resolve_backend(
+    cfg: EnvConfig, recorded: str | None = None, copies: int | None = None
+) -> tuple[EnvConfig, str]:
     """``cfg`` with ``backend`` set to the one a run uses, and the line that announces it.
 
     ``recorded``: the backend the run dir being continued recorded; ``auto`` takes it, so a
     resume rebuilds the same envs (a recorded ``envpool`` must then be available).
+    ``copies``: how many env copies the run steps at once (``AlgoConfig.stepped_copies``);
+    ``auto`` takes gymnasium for one: every call to EnvPool hands its work to a worker thread
+    and waits for it, which costs more than one copy's step in this process (in an SAC loop,
+    about 250 us a step against gymnasium's 35-290 us; benchmarks/env_backends.py).
     """
     if cfg.backend == "auto" and recorded in ("gymnasium", "envpool"):
         chosen = replace(cfg, backend=recorded)
         backend_of(chosen)  # EnvPool gone since: one line saying so
         return chosen, f"env backend {recorded} (auto: the one the run dir recorded)"
     backend = backend_of(cfg)
+    if cfg.backend == "auto" and backend == "envpool" and copies == 1:
+        why = "auto: one env copy steps faster in gymnasium than through EnvPool's worker thread"
+        return replace(cfg, backend="gymnasium"), (
+            f"env backend gymnasium ({why}; env.backend=envpool to use it anyway)"
+        )
     if cfg.backend != "auto":
         why = f"env.backend={cfg.backend}"
         if backend == "envpool" and cfg.id in ENVPOOL_DIFFERS:
