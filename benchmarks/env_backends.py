@@ -265,9 +265,9 @@ def report(records: list[dict], rounds: int) -> str:
             "`python -m rlpipe +experiment=<preset> env.backend=<b> seed=0` builds it; median "
             f"of {rounds} interleaved rounds; ratio: EnvPool ÷ gymnasium, median (range) of "
             'the rounds\' ratios; busy core: `python -c "while True: pass"` beside it; '
-            "the preset runs on: the backend its `env.backend` (auto unless it names one) "
-            "takes today, EnvPool where it runs the id, but gymnasium for one env copy "
-            "(`rlpipe/envs/backends.py:resolve_backend`)",
+            "the preset runs on: the backend `python -m rlpipe +experiment=<preset>` takes "
+            "(its `env.backend`, auto unless it names one: EnvPool where it runs the id, but "
+            "gymnasium for one env copy; `rlpipe/envs/backends.py:resolve_backend`)",
             "",
             table(
                 [

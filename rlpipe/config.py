@@ -125,8 +125,8 @@ class EnvConfig:
     num_envs: int = checked(1, "at_least_one")
     max_episode_steps: int | None = checked(None, "optional_at_least_one")  # None: the env's own
     kwargs: dict[str, Any] = field(default_factory=dict)  # passed to gymnasium.make
-    # auto: EnvPool where it is installed and runs the id (a run records the one it used),
-    # else gymnasium; gymnasium; envpool
+    # auto: EnvPool where it is installed and runs the id, else gymnasium, and gymnasium for a
+    # run of one env copy (a run records the one it used); gymnasium; envpool
     backend: str = checked("auto", choices=ENV_BACKENDS)
     # observations (docs/api.md "Observations"): a Dict's keys as one flat vector; flatten: the
     # networks see it whole; keys: they encode each key apart (an MLP each, a CNN per image)
