@@ -39,6 +39,7 @@ from rlpipe.errors import check, check_fields
 from rlpipe.files import check_writable, write_atomic
 from rlpipe.heuristic import heuristic_policy, naive_policy, random_policy
 from rlpipe.loggers import require_extra
+from rlpipe.outcomes import counted
 from rlpipe.pipeline import load_run
 from rlpipe.rundir import RunDir
 from rlpipe.runs import latest_run
@@ -197,7 +198,7 @@ def summary_line(summary: dict[str, Any]) -> str:
     what = summary["policy"] + (f" ({summary['checkpoint']})" if summary["checkpoint"] else "")
     line = (
         f"{what} on {summary['env']}: return {summary['return_mean']:.2f} ± "
-        f"{summary['return_std']:.2f} over {summary['episodes']} episodes "
+        f"{summary['return_std']:.2f} over {counted(summary['episodes'], 'episode')} "
         f"(min {summary['return_min']:.2f}, max {summary['return_max']:.2f}) | "
         f"episode length {summary['length_mean']:.1f} | summary {summary['json']}"
     )

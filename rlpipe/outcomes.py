@@ -12,6 +12,11 @@ from typing import Any
 from rlpipe.errors import RlpipeError
 
 
+def counted(number: int, noun: str) -> str:
+    """``number`` and ``noun``, plural unless one: "1 episode", "20 episodes"."""
+    return f"{number:,} {noun}{'' if number == 1 else 's'}"
+
+
 @dataclass
 class RunResult:
     """What a finished run reports (also written to ``summary.json`` in the run dir)."""
@@ -25,8 +30,9 @@ class RunResult:
 
     def summary_line(self) -> str:
         return (
-            f"final eval {self.eval_mean:.2f} ± {self.eval_std:.2f} over {self.eval_episodes} "
-            f"episodes | {self.frames:,} frames | {self.wall_time:.1f} s | run dir {self.run_dir}"
+            f"final eval {self.eval_mean:.2f} ± {self.eval_std:.2f} over "
+            f"{counted(self.eval_episodes, 'episode')} | {self.frames:,} frames | "
+            f"{self.wall_time:.1f} s | run dir {self.run_dir}"
         )
 
 

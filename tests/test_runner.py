@@ -71,6 +71,8 @@ def test_runner_logs_checkpoints_and_summarises(tmp_path):
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["frames"] == 400 and summary["eval_mean"] == pytest.approx(result.eval_mean)
     assert "final eval" in result.summary_line() and str(tmp_path) in result.summary_line()
+    assert " over 2 episodes | 400 frames | " in result.summary_line()
+    assert " over 1 episode | " in replace(result, eval_episodes=1).summary_line()
 
 
 def test_a_runner_run_is_a_run_for_evaluate_plot_and_resume(tmp_path, capsys):
