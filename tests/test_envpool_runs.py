@@ -134,6 +134,8 @@ def test_search_gives_the_same_theta_on_worker_processes_as_here():
 
 
 ALGOS = {
+    "dqn": [],
+    "ppo": ["algo.frames_per_batch=100", "algo.minibatch_size=50"],
     "reinforce": ["env=cartpole", "algo.episodes_per_epoch=4", "algo.epochs=2"],
     "sac": ["env=pendulum", "algo.learning_starts=50", "algo.batch_size=32"],
     "mbrl": [
@@ -149,10 +151,10 @@ ALGOS = {
 }
 
 
-# dqn, ppo and ars run on EnvPool by env.backend=auto in their own command-line tests (and ars
-# on BipedalWalker below); these three ask for it
+# ars runs on EnvPool by env.backend=auto in its own command-line test (and on BipedalWalker
+# below); the others, on one env copy, run on gymnasium by auto: these ask for EnvPool
 @needs_envpool
-@pytest.mark.parametrize("algo", ["reinforce", "sac", "mbrl"])
+@pytest.mark.parametrize("algo", ["dqn", "ppo", "reinforce", "sac", "mbrl"])
 def test_every_algorithm_trains_on_envpool_from_the_command_line(rlpipe_cli, tmp_path, algo):
     proc = rlpipe_cli(*TINY, f"algo={algo}", *ALGOS[algo], "env.backend=envpool")
     assert proc.returncode == 0, proc.stderr
@@ -176,12 +178,20 @@ def test_the_same_seed_gives_the_same_numbers_run_to_run(rlpipe_cli, tmp_path):
     assert results[0] == results[1]
 
 
-def test_a_resume_keeps_the_backend_its_run_recorded(rlpipe_cli, tmp_path):
-    proc = rlpipe_cli(*TINY, "env.backend=gymnasium")
+@pytest.mark.parametrize(
+    "recorded, copies",
+    [
+        ("gymnasium", "env.num_envs=2"),  # where auto would take EnvPool (if installed)
+        pytest.param("envpool", "env.num_envs=1", marks=needs_envpool),  # auto: gymnasium
+    ],
+)
+def test_a_resume_keeps_the_backend_its_run_recorded(rlpipe_cli, tmp_path, recorded, copies):
+    proc = rlpipe_cli(*TINY, copies, f"env.backend={recorded}")
     assert proc.returncode == 0, proc.stderr
-    proc = rlpipe_cli(*TINY[:1], "total_frames=300", "eval_every=100", "eval_episodes=2")  # auto
+    resume = [*TINY[:1], copies, "total_frames=300", "eval_every=100", "eval_episodes=2"]  # auto
+    proc = rlpipe_cli(*resume)
     assert proc.returncode == 0, proc.stderr
-    assert "env backend gymnasium (auto: the one the run dir recorded)" in proc.stdout
+    assert f"env backend {recorded} (auto: the one the run dir recorded)" in proc.stdout
     assert json.loads((tmp_path / "run" / "summary.json").read_text())["frames"] == 300
 
 
