@@ -193,8 +193,7 @@ def auto_backend(preset: str) -> str:
     from rlpipe.envs.backends import resolve_backend
 
     cfg = compose_run(f"+experiment={preset}").resolved()
-    copies = cfg.algo.stepped_copies(cfg.env.num_envs)
-    return resolve_backend(cfg.env, copies=copies)[0].backend
+    return resolve_backend(cfg.env, copies=cfg.stepped_copies())[0].backend
 
 
 def report(records: list[dict], rounds: int) -> str:

@@ -161,7 +161,7 @@ def rlpipe_finished(out: Path, cfg: Config | None = None) -> bool:
         # a backend the preset or an --override names must be the record's; auto's is EnvPool
         # or gymnasium as the machine has EnvPool, but gymnasium for one env copy everywhere
         backend = cfg.env.backend
-        if backend == "auto" and cfg.algo.stepped_copies(cfg.env.num_envs) == 1:
+        if backend == "auto" and cfg.stepped_copies() == 1:
             backend = "gymnasium"
         return same_identity(saved.get("config", {}), cfg) and backend in (
             "auto",

@@ -243,6 +243,11 @@ class Config:
         algo = replace(self.algo, **{key: getattr(run, key) for key in RUN_KEYS})
         return replace(run, algo=algo.for_copies(self.env.num_envs))
 
+    def stepped_copies(self) -> int:
+        """How many env copies a run of this config steps at once: its algorithm's say on
+        ``env.num_envs`` (:meth:`AlgoConfig.stepped_copies`; ``env.backend=auto``'s choice)."""
+        return self.algo.stepped_copies(self.env.num_envs)
+
 
 # top-level keys that do not decide a run's results: its length and cadences, logging,
 # progress, and where it runs (the algorithm's own are AlgoConfig.not_fingerprinted)

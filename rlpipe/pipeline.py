@@ -60,7 +60,7 @@ def train(
     recorded = run.read_config(allow_code=True) if run.is_run() else None
     # auto becomes the backend used (config.yaml records it); a run continued keeps its own
     env_cfg, backend_line = resolve_backend(
-        cfg.env, recorded and recorded.env.backend, cfg.algo.stepped_copies(cfg.env.num_envs)
+        cfg.env, recorded and recorded.env.backend, cfg.stepped_copies()
     )
     cfg = replace(cfg, env=env_cfg)
     if recorded is not None:  # and how it began: its parent, its schedules' frames

@@ -14,7 +14,7 @@ from torchrl.collectors import Collector
 from torchrl.envs.utils import check_env_specs
 
 from rlpipe.algos.configs import ARSConfig, DQNConfig
-from rlpipe.config import EnvConfig
+from rlpipe.config import Config, EnvConfig
 from rlpipe.envs import backends as env_backends
 from rlpipe.envs import envpool_env, make_env
 from rlpipe.envs.backends import (
@@ -198,6 +198,7 @@ def test_auto_takes_gymnasium_for_one_env_copy():
     # what a run steps at once: env.num_envs, or ARS's population whatever num_envs says
     assert DQNConfig().stepped_copies(1) == 1 and DQNConfig().stepped_copies(8) == 8
     assert ARSConfig(num_directions=4, num_best=4).stepped_copies(1) == 8
+    assert Config(env=EnvConfig(num_envs=8)).stepped_copies() == 8  # DQN's: the env's copies
 
 
 def test_auto_keeps_the_backend_a_run_recorded():
