@@ -119,7 +119,8 @@ def resolve_backend(
     ``copies``: how many env copies the run steps at once (``AlgoConfig.stepped_copies``);
     ``auto`` takes gymnasium for one: every call to EnvPool hands its work to a worker thread
     and waits for it, which costs more than one copy's step in this process (the one-copy SAC
-    presets trained at 0.89-0.96x gymnasium's speed on EnvPool alone: benchmarks/env_backends.py).
+    presets trained at 0.89-0.96x gymnasium's speed on EnvPool alone on an Intel Xeon VM,
+    0.97-0.99x on an AMD EPYC VM: benchmarks/env_backends.py).
     """
     if cfg.backend == "auto" and recorded in ("gymnasium", "envpool"):
         chosen = replace(cfg, backend=recorded)
