@@ -191,27 +191,38 @@ def check_tuned_id(choices: DictConfig, env_id: str | None) -> None:
     )
 
 
-# envs on which an algorithm's own defaults are known to fail, and why: the run says so at start
-EXPLORATION_TRAPS = {
+# envs on which algorithms' own defaults are known to fail, why, and the algorithms (of those
+# that can act there) whose defaults fail: the run says so at start
+EXPLORATION_TRAPS: dict[str, tuple[str, tuple[str, ...]]] = {
+    "MountainCar-v0": (
+        "a known exploration trap: every step costs -1 until the car first reaches the flag, and "
+        "random pushes one step at a time undo each other's swing, so it rarely gets there "
+        "(episodes of -200 with nothing to learn from); DQN with each random action held for "
+        "many steps gets there (rlpipe: algo=dqn env=mountaincar, tuned with εz-greedy), and "
+        "so do ARS's defaults",
+        ("dqn", "ppo", "reinforce"),
+    ),
     "MountainCarContinuous-v0": (
         "a known exploration trap: every action costs reward until the car first reaches the "
         "flag, so exploration that stays local learns to stand still (a return near 0); SAC "
         "with exploration noise correlated in time gets there (the RL Zoo: gSDE; rlpipe: "
-        "algo=sac env=mountaincar_continuous, tuned with pink noise)"
+        "algo=sac env=mountaincar_continuous, tuned with pink noise)",
+        ("ars", "mbrl", "ppo", "reinforce", "sac"),
     ),
 }
-# the algorithm settings that escape those traps where they are not zero (exploration noise
-# correlated in time): a run that sets one is not on its defaults' exploration
-TRAP_ESCAPES = {"sac": "noise_color"}
+# the algorithm settings that escape those traps where they are set (exploration correlated in
+# time: coloured noise, held random actions): a run setting one is off its defaults' exploration
+TRAP_ESCAPES = {"sac": "noise_color", "dqn": "eps_zeta"}
 
 
 def trap_notice(algo: AlgoConfig, env_id: str) -> str | None:
     """The line a run without tuned settings starts with where ``algo``'s defaults are known to
     fail on ``env_id`` (:data:`EXPLORATION_TRAPS`) and it does not set what escapes the trap
-    (:data:`TRAP_ESCAPES`); None elsewhere."""
-    why = EXPLORATION_TRAPS.get(env_id.split(":")[-1])
+    (:data:`TRAP_ESCAPES`); None elsewhere, and for an algorithm that cannot act there (its
+    own error says so)."""
+    why, trapped = EXPLORATION_TRAPS.get(env_id.split(":")[-1], ("", ()))
     escape = TRAP_ESCAPES.get(algo.name)
-    if why is None or (escape is not None and getattr(algo, escape)):
+    if algo.name not in trapped or (escape is not None and getattr(algo, escape)):
         return None
     return f"rlpipe: note: {algo.name}'s defaults on {env_id}: {why}"
 

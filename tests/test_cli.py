@@ -12,7 +12,7 @@ import pytest
 from conftest import TINY, assert_auto_chose, run_module
 from omegaconf import OmegaConf
 
-from rlpipe.algos import PPOConfig, SACConfig
+from rlpipe.algos import ARSConfig, DQNConfig, PPOConfig, ReinforceConfig, SACConfig
 from rlpipe.cli import compose_run, trap_notice, tuned_elsewhere_notice
 from rlpipe.config import EnvConfig
 
@@ -325,3 +325,18 @@ def test_a_known_exploration_trap_is_named_at_start(rlpipe_cli):
         is None
     )
     assert trap_notice(PPOConfig(), "MountainCarContinuous-v0") is not None
+    # an algorithm that cannot act there gets its own error, not a note before it
+    assert trap_notice(DQNConfig(), "MountainCarContinuous-v0") is None
+
+
+def test_the_discrete_mountain_car_trap_is_named_for_the_algorithms_it_traps(rlpipe_cli):
+    """MountainCar-v0: DQN's, PPO's and REINFORCE's defaults stay at -200, ARS's get there;
+    DQN's held random actions (its tuned preset's) are its way out."""
+    first = first_line(rlpipe_cli, "algo=ppo", "env=mountaincar")
+    assert first.startswith("rlpipe: note: ppo's defaults on MountainCar-v0: a known ")
+    assert "algo=dqn env=mountaincar" in first
+    assert trap_notice(DQNConfig(), "MountainCar-v0").startswith("rlpipe: note: dqn's")
+    assert trap_notice(ReinforceConfig(), "MountainCar-v0") is not None
+    assert trap_notice(DQNConfig(eps_zeta=2.0), "MountainCar-v0") is None
+    assert trap_notice(ARSConfig(), "MountainCar-v0") is None
+    assert trap_notice(SACConfig(), "MountainCar-v0") is None  # SAC cannot act there
