@@ -107,6 +107,9 @@ class DQNConfig(OffPolicyConfig):
     # εz-greedy: each random action held for n steps, P(n) ∝ n^-eps_zeta (e.g. 2; > 1);
     # null: one step (ε-greedy)
     eps_zeta: float | None = None
+    # the most any return can be (e.g. CartPole's 1/(1-γ) = 100 at γ 0.99): each TD target is
+    # clamped to it, so Q-values cannot climb past it; null: unbounded
+    q_max: float | None = None
     # env frames collected per iteration (across all envs), then as many gradient steps: one
     # per frame, as the notebook
     frames_per_batch: int = checked(4, "at_least_one")

@@ -92,10 +92,12 @@ class DirectDQNLoss(Binding, DQNLoss):
     categorical action space, TorchRL's TD(0) value estimator) whose :meth:`forward` computes
     what ``DQNLoss.forward`` computes: the chosen action's value, double DQN's online argmax and
     target value or the target's max, ``r + γ^k (1 - terminated) V'``, the distance loss, the
-    ``td_error`` priority; and ``q_mean``, the mean value of the chosen actions (for logging)."""
+    ``td_error`` priority; and ``q_mean``, the mean value of the chosen actions (for logging).
+    ``q_max`` (not DQNLoss's): each target clamped to at most it, the returns' ceiling."""
 
-    def __init__(self, value_network: nn.Module, **kwargs) -> None:
+    def __init__(self, value_network: nn.Module, q_max: float | None = None, **kwargs) -> None:
         super().__init__(value_network, **kwargs)
+        self.q_max = q_max
         if self.action_space != "categorical":
             raise ValueError("DirectDQNLoss needs a categorical action space")
         self.in_key = inner_network(self.value_network).in_keys[0]
@@ -121,6 +123,8 @@ class DirectDQNLoss(Binding, DQNLoss):
             else:
                 next_value = next_values.max(-1, keepdim=True).values
             target_value = td0_target(self, tensordict, next_value).squeeze(-1)
+            if self.q_max is not None:
+                target_value = target_value.clamp(max=self.q_max)
             priority = (chosen - target_value).pow(2).unsqueeze(-1)
         tensordict.set(self.tensor_keys.priority, priority, inplace=True)
         weights = None

@@ -119,6 +119,7 @@ class DQN(OffPolicy):
                 delay_value=True,
                 double_dqn=cfg.double_dqn,
                 action_space=spec,
+                q_max=cfg.q_max,
             )
         )
         self.target_updater = (  # tau 1: copy (TorchRL's SoftUpdate wants tau <= 0.5)
