@@ -300,3 +300,18 @@ def test_eps_zeta_holds_the_collecting_policy_s_random_actions():
 def test_eps_zeta_on_torchrl_s_collector_is_one_line():
     with pytest.raises(RlpipeError, match="algo.eps_zeta needs an env made by rlpipe.make_env"):
         DQN(torchrl_stepped(EnvConfig(num_envs=2)), DQNConfig(**SMALL, eps_zeta=2.0))
+
+
+@pytest.mark.parametrize("q_max", [None, 0.5])
+def test_q_max_bounds_the_q_values_learned(q_max):
+    """CartPole pays 1 a step, so every target is at least 1 without a bound: the learned
+    values rise past 1; with ``q_max`` 0.5 they settle at or under it."""
+    torch.manual_seed(0)
+    cfg = DQNConfig(**{**SMALL, "updates_per_batch": 8}, lr=1e-2, q_max=q_max)
+    algo = DQN(partial(make_env, EnvConfig(num_envs=2), seed=0), cfg)
+    try:
+        assert algo.loss.q_max == q_max
+        q_means = [algo.train_step().get("train/q_mean") for _ in range(20)][-5:]
+        assert min(q_means) > 1.0 if q_max is None else max(q_means) < 0.75
+    finally:
+        algo.close()
