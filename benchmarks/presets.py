@@ -1,15 +1,15 @@
 """Every tuned preset on its held-out seeds, beside SB3 with the RL Zoo's settings: one section.
 
-The protocol (``presets_table.py``): presets are tuned on seeds below 100 and published on their
-held-out seeds, 100-109 (``sac_bipedal``: 100-102), which no tuning run may touch. By default
-every preset runs on its held-out seeds; ``--tune --seeds 0 1 2`` runs tuning seeds and refuses
-any seed ≥ 100, and ``--override`` (anything beyond ``env.backend``, ``threads``, ``device``)
-needs ``--tune``. Solved, per seed: the last three evals' mean and the final 100-episode greedy
-eval both ≥ the target. The section (``presets_report.py``) gives per preset the seeds solved,
-the IQM of the final evals with a 95% bootstrap CI, frames and training seconds to the target,
-SB3's figures on the same seeds and the ratio of training seconds to the target; over all
-presets the IQM of the normalised finals with a 95% stratified-bootstrap CI, and with
-``--figure`` the performance profile as a PNG (``presets_figure.py``).
+The protocol (``presets_table.py``): presets are tuned on seeds below 100 or from 1000 up and
+published on their held-out seeds, 100-109 (``sac_bipedal``: 100-102), which no tuning run may
+touch. By default every preset runs on its held-out seeds; ``--tune --seeds 0 1 2`` runs tuning
+seeds and refuses any seed from 100 to 999, and ``--override`` (anything beyond ``env.backend``,
+``threads``, ``device``) needs ``--tune``. Solved, per seed: the last three evals' mean and the
+final 100-episode greedy eval both ≥ the target. The section (``presets_report.py``) gives per
+preset the seeds solved, the IQM of the final evals with a 95% bootstrap CI, frames and training
+seconds to the target, SB3's figures on the same seeds and the ratio of training seconds to the
+target; over all presets the IQM of the normalised finals with a 95% stratified-bootstrap CI, and
+with ``--figure`` the performance profile as a PNG (``presets_figure.py``).
 
 How the runs run (``presets_runs.py``, ``presets_sb3.py``): each rlpipe run as a user runs it, in
 a subprocess, then ``python -m rlpipe.evaluate``; SB3 in a spawned process. ``--jobs`` runs go at
@@ -33,6 +33,7 @@ them on the next machine; the other saves stay on the machine that made them.
     python benchmarks/presets.py --sb3 --out benchmarks/results/presets --read-only \
         --append BENCHMARKS.md
     python benchmarks/presets.py --presets dqn_cartpole --tune --seeds 0 1 2   # tuning
+    python benchmarks/screen.py --preset dqn_cartpole A=DIR_A B=DIR_B     # arms compared
     python benchmarks/presets.py --presets dqn_cartpole --seeds 100 --frames 2000 \
         --final-episodes 3 --sb3                                           # smoke test
 """
@@ -99,7 +100,9 @@ def arguments() -> tuple[argparse.ArgumentParser, argparse.Namespace]:
         "continues."
     )
     p.add_argument("--presets", nargs="+", metavar="NAME", help=f"of: {', '.join(PRESETS)}")
-    p.add_argument("--tune", action="store_true", help="a tuning run: --seeds below 100 only")
+    p.add_argument(
+        "--tune", action="store_true", help="a tuning run: --seeds below 100 or from 1000 up"
+    )
     p.add_argument("--sb3", action="store_true", help="also run SB3 with the RL Zoo's settings")
     p.add_argument(
         "--jobs",

@@ -1,8 +1,9 @@
 """The presets benchmarks/presets.py measures (presets.yaml) and the held-out seed protocol.
 
-The protocol: a preset is tuned on any seeds below 100 (``tuned_on`` says which were used) and
-published on its held-out seeds (100-109; ``sac_bipedal``, hours per seed: 100-102), which no
-tuning run, sweep or trial may touch. Solved, per seed: the mean of the last three evals and
+The protocol: a preset is tuned on any seeds below 100 or from 1000 up (``tuned_on`` says which
+were used) and published on its held-out seeds (100-109; ``sac_bipedal``, hours per seed:
+100-102), which no tuning run, sweep or trial may touch; 110-999 stay free for checks of the
+published figures. Solved, per seed: the mean of the last three evals and
 the final 100-episode greedy eval both ≥ the target. The target is the RL Zoo's figure where
 the Zoo has one for that algorithm and env (its benchmark.md: one run, the deterministic policy),
 else the aim the preset was tuned to (``target_from`` says which). ``floor``: a uniformly random
@@ -22,6 +23,7 @@ import yaml
 from rlpipe.errors import RlpipeError, check
 
 HELD_OUT = tuple(range(100, 110))  # the seeds results are published on
+RESERVED = range(100, 1000)  # held-out seeds and checks of them: never a tuning seed
 # overrides that change how a run executes, not what it learns: allowed on held-out seeds
 NEUTRAL_KEYS = ("env.backend", "threads", "device")
 
@@ -35,7 +37,7 @@ class Preset:
     target: float
     target_from: str  # where the target comes from
     floor: float  # a random policy's 100-episode mean (the normalisation's 0)
-    tuned_on: tuple[int, ...]  # the seeds its tuning runs used (all < 100)
+    tuned_on: tuple[int, ...]  # the seeds its tuning runs used (< 100 or >= 1000)
     held_out: tuple[int, ...] = HELD_OUT
     final_episodes: int = 100  # episodes of the final greedy eval
     sb3: dict[str, Any] | None = None  # SB3 keyword arguments (RL Zoo's hyperparams/<algo>.yml)
@@ -109,22 +111,23 @@ def seeds_for(
     presets: Sequence[Preset], seeds: Sequence[int] | None, tune: bool, overrides: Sequence[str]
 ) -> dict[str, tuple[int, ...]]:
     """Each preset's seeds under the protocol: its held-out seeds by default; ``--tune`` runs
-    only seeds below 100 (and must name them); a published run only held-out seeds, and no
-    override that changes what a run learns."""
+    only seeds outside 100-999 (and must name them); a published run only held-out seeds, and
+    no override that changes what a run learns."""
     if tune:
-        check(seeds is not None, "--tune needs --seeds: the tuning seeds, all below 100")
-        touched = sorted({s for s in seeds if s >= 100})
+        check(seeds is not None, "--tune needs --seeds: the tuning seeds, below 100 or >= 1000")
+        touched = sorted({s for s in seeds if s in RESERVED})
         check(
             not touched,
-            f"--tune refuses held-out seeds ({', '.join(map(str, touched))}): seeds 100 and "
-            "above are for the published table only; tune on seeds below 100",
+            f"--tune refuses held-out seeds ({', '.join(map(str, touched))}): seeds 100-999 "
+            "are for the published table and its checks only; tune on seeds below 100 or "
+            "from 1000 up",
         )
         return {p.experiment: tuple(dict.fromkeys(seeds)) for p in presets}
     learning = [o for o in overrides if o.lstrip("+~").split("=")[0] not in NEUTRAL_KEYS]
     check(
         not learning,
         f"--override {' '.join(learning)} changes the preset: that is tuning, so add --tune "
-        "and tuning seeds (below 100); held-out runs take only "
+        "and tuning seeds (below 100 or from 1000 up); held-out runs take only "
         + ", ".join(f"{k}=" for k in NEUTRAL_KEYS),
     )
     chosen = {}
@@ -134,7 +137,8 @@ def seeds_for(
         if outside:
             raise RlpipeError(
                 f"seed(s) {', '.join(map(str, outside))}: not {p.experiment}'s held-out seeds "
-                f"({p.held_out[0]}-{p.held_out[-1]}): add --tune to run tuning seeds (< 100)"
+                f"({p.held_out[0]}-{p.held_out[-1]}): add --tune to run tuning seeds "
+                "(< 100 or >= 1000)"
             )
         chosen[p.experiment] = wanted
     return chosen

@@ -38,13 +38,14 @@ def test_published_runs_default_to_the_held_out_seeds(bench) -> None:
     seeds = table.seeds_for(chosen, None, tune=False, overrides=[])
     assert seeds == {"dqn_cartpole": tuple(range(100, 110)), "sac_bipedal": (100, 101, 102)}
     assert table.seeds_for(chosen, [101], False, ["env.backend=gymnasium"])["sac_bipedal"] == (101,)
-    assert all(s < 100 for p in table.PRESETS.values() for s in p.tuned_on)
+    assert not {s for p in table.PRESETS.values() for s in p.tuned_on} & set(table.RESERVED)
 
 
 @pytest.mark.parametrize(
     "seeds, tune, overrides, message",
     [
         ([0, 1, 100], True, [], "--tune refuses held-out seeds (100)"),
+        ([1000, 999, 110], True, [], "--tune refuses held-out seeds (110, 999)"),
         (None, True, [], "--tune needs --seeds"),
         ([0], False, [], "seed(s) 0: not dqn_cartpole's held-out seeds"),
         ([105], False, ["algo.lr=1e-3"], "--override algo.lr=1e-3 changes the preset"),
@@ -57,10 +58,10 @@ def test_the_protocol_refuses(bench, seeds, tune, overrides, message) -> None:
     assert message in str(refused.value) and "\n" not in str(refused.value)
 
 
-def test_tuning_runs_take_seeds_below_100(bench) -> None:
+def test_tuning_runs_take_seeds_below_100_or_from_1000(bench) -> None:
     preset = bench.presets_table.PRESETS["dqn_cartpole"]
-    seeds = bench.presets_table.seeds_for([preset], [2, 0, 2], True, ["algo.lr=1e-3"])
-    assert seeds == {"dqn_cartpole": (2, 0)}
+    seeds = bench.presets_table.seeds_for([preset], [2, 0, 2, 1000], True, ["algo.lr=1e-3"])
+    assert seeds == {"dqn_cartpole": (2, 0, 1000)}
 
 
 def run(bench, seed, means, final, which="rlpipe", seconds=4.0):

@@ -194,7 +194,8 @@ def test_auto_takes_gymnasium_for_one_env_copy():
         "envpool"
     )
     asked = EnvConfig(id="MountainCarContinuous-v0", backend="envpool")
-    assert resolve_backend(asked, copies=1)[0].backend == "envpool"
+    chosen, line = resolve_backend(asked, copies=1)
+    assert chosen.backend == "envpool" and line.endswith("; env.backend=auto lets rlpipe choose)")
     # what a run steps at once: env.num_envs, or ARS's population whatever num_envs says
     assert DQNConfig().stepped_copies(1) == 1 and DQNConfig().stepped_copies(8) == 8
     assert ARSConfig(num_directions=4, num_best=4).stepped_copies(1) == 8

@@ -132,8 +132,8 @@ def resolve_backend(
         return replace(cfg, backend="gymnasium"), (
             f"env backend gymnasium ({why}; env.backend=envpool to use it anyway)"
         )
-    if cfg.backend != "auto":
-        why = f"env.backend={cfg.backend}"
+    if cfg.backend != "auto":  # typed, or set by tuned settings: the line says how to undo it
+        why = f"env.backend={cfg.backend}; env.backend=auto lets rlpipe choose"
         if backend == "envpool" and cfg.id in ENVPOOL_DIFFERS:
             why += f"; warning: {ENVPOOL_DIFFERS[cfg.id]}"
     elif cfg.id in ENVPOOL_DIFFERS and _why_not_envpool(cfg) is None:
