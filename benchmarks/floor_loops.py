@@ -66,7 +66,8 @@ def soft_update(target: nn.Module, online: nn.Module, tau: float) -> None:
 def dqn(frames: int, seed: int) -> Work:
     """``+experiment=dqn_cartpole``: 16 copies, 128 frames then 32 double-DQN Huber updates of 256
     per batch, 3-step returns within each batch, AdamW (amsgrad, lr 2e-3 annealed to 0), gradients
-    clipped by value, soft target τ 0.02, ε linear 1 → 0.1 over 5,000 frames."""
+    clipped by value, soft target τ 0.02, ε linear 1 → 0.2 over 5,000 frames, TD targets
+    clamped at 100."""
     copies, updates, size, capacity, starts = 16, 32, 256, 50_000, 1_000
     gamma, n, tau = 0.99, 3, 0.02
     torch.manual_seed(seed)
@@ -84,7 +85,7 @@ def dqn(frames: int, seed: int) -> Work:
     }
     work, stored, head, done_frames = Work(), 0, 0, 0
     while done_frames < frames:
-        eps = 1.0 + min(done_frames / 5_000, 1.0) * (0.1 - 1.0)
+        eps = 1.0 + min(done_frames / 5_000, 1.0) * (0.2 - 1.0)
         batch = {k: [] for k in ("obs", "act", "rew", "next", "term", "done")}
         steps = min(128 // copies, math.ceil((frames - done_frames) / copies))  # cut at the budget
         per_batch = steps * copies
@@ -132,7 +133,7 @@ def dqn(frames: int, seed: int) -> Work:
             with torch.no_grad():
                 best = q(buf["next"][i]).argmax(-1, keepdim=True)
                 value = target(buf["next"][i]).gather(-1, best).squeeze(-1)
-                goal = buf["ret"][i] + buf["cont"][i] * value
+                goal = (buf["ret"][i] + buf["cont"][i] * value).clamp(max=100.0)
             pred = q(buf["obs"][i]).gather(-1, buf["act"][i, None]).squeeze(-1)
             loss = F.smooth_l1_loss(pred, goal)
             opt.zero_grad(set_to_none=True)

@@ -261,7 +261,7 @@ def test_set_threads_flushes_subnormals():
 @pytest.mark.parametrize(
     "overrides, added",
     [
-        (["algo=dqn"], ["eps_zeta", "q_max"]),
+        (["algo=dqn", "~tuned"], ["eps_zeta", "q_max"]),  # dqn_cartpole's tuned q_max is 100
         (["algo=sac"], ["noise_color", "noise_steps", "fixed_alpha"]),
     ],
 )
