@@ -1,14 +1,14 @@
 """The presets benchmarks/presets.py measures (presets.yaml) and the held-out seed protocol.
 
-The protocol: a preset is tuned on any seeds below 100 or from 1000 up (``tuned_on`` says which
-were used) and published on its held-out seeds (100-109; ``sac_bipedal``, hours per seed:
-100-102), which no tuning run, sweep or trial may touch; 110-999 stay free for checks of the
-published figures. Solved, per seed: the mean of the last three evals and
-the final 100-episode greedy eval both ≥ the target. The target is the RL Zoo's figure where
-the Zoo has one for that algorithm and env (its benchmark.md: one run, the deterministic policy),
-else the aim the preset was tuned to (``target_from`` says which). ``floor``: a uniformly random
-policy's mean over 100 episodes, for scores normalised as (score - floor) / (target - floor).
-Each preset's entry, with SB3's settings, is data in ``presets.yaml``.
+The protocol: a preset is tuned on any seeds below 100 or from 1000 up (``tuned_on`` says which were
+used) and published on its held-out seeds (100-109; ``sac_bipedal``, hours per seed: 100-102), which
+no tuning run, sweep or trial may touch; 110-999 stay untouched, for others' checks of the published
+figures. Solved, per seed: the mean of the last three evals and the final 100-episode greedy eval
+both ≥ the target. The target is the RL Zoo's figure where the Zoo has one for that algorithm and
+env (its benchmark.md: one run, the deterministic policy), else the aim the preset was tuned to
+(``target_from`` says which). ``floor``: a uniformly random policy's mean over 100 episodes, for
+scores normalised as (score - floor) / (target - floor). Each preset's entry, with SB3's settings,
+is data in ``presets.yaml``.
 """
 
 from __future__ import annotations
