@@ -224,10 +224,13 @@ def rlpipe_job(
         saved = record(
             meta, start, **read_run(run_dir), config=identity(ran), backend=ran.env.backend
         )
+    return record_run(preset.experiment, seed, saved, reused)
+
+
+def record_run(preset: str, seed: int, saved: dict, reused: bool = False) -> Run:
+    """The rlpipe run a record (``rlpipe.json``, holding its evals) tells of."""
     evals = [(int(f), float(m), float(s)) for f, m, s in saved["evals"]]
-    return Run(
-        preset.experiment, seed, "rlpipe", evals, saved["final"], reused=reused, **recorded(saved)
-    )
+    return Run(preset, seed, "rlpipe", evals, saved.get("final"), reused=reused, **recorded(saved))
 
 
 class Scheduler:

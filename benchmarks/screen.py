@@ -26,7 +26,7 @@ from pathlib import Path
 
 from common import table
 from presets_report import seed_text
-from presets_runs import Run, recorded
+from presets_runs import Run, record_run
 from presets_table import PRESETS
 
 from rlpipe.errors import RlpipeError, check
@@ -48,8 +48,7 @@ def read_arm(folder: Path, preset: str) -> dict[int, Run]:
         saved = json.loads(path.read_text())
         if "evals" in saved:
             seed = int(path.parent.name.removeprefix("seed"))
-            evals = [tuple(row) for row in saved["evals"]]
-            runs[seed] = Run(preset, seed, "rlpipe", evals, saved.get("final"), **recorded(saved))
+            runs[seed] = record_run(preset, seed, saved)
     check(bool(runs), f"{folder}: no finished {preset} records (seed<N>/rlpipe.json) in it")
     return runs
 
