@@ -1,0 +1,133 @@
+"""Returns by episode order after an env's creation: rlpipe's 100-episode evaluation on 32 copies
+against 100 consecutive episodes on one env, and early falls by each copy's episode number.
+
+BipedalWalker-v3's Box2D world outlives ``reset``: after its third reset a copy runs with other
+contact physics from the first step (gymnasium and EnvPool alike; after the other resets its
+first steps match a fresh env's). rlpipe's evaluation steps ``min(episodes, 32)`` copies in
+lock-step, so 100 episodes hold 32 such episodes, where the classic definition of solved
+("100 consecutive trials") holds one. Per trained run (its newest checkpoint, the run's
+backend, one evaluation seed): the mean and early falls (return < 0 within 200 steps) of
+rlpipe's evaluation, of 100 consecutive episodes on one env, and the early falls of 16 fresh
+copies' 1st to 4th episodes (capped at 300 steps; on gymnasium, seeding resets a copy once
+before its first episode). Results are saved in ``<run>/evaluation/order-*.json`` and read
+back, so a call with the same arguments continues.
+
+    python benchmarks/episode_order.py RUN [RUN ...] [--episodes 100] [--append BENCHMARKS.md]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+from pathlib import Path
+
+import torch
+from common import load_span, publish_section, script, section_head, table
+from torchrl.envs import ExplorationType, set_exploration_type
+
+from rlpipe.envs import make_env
+from rlpipe.episodes import MAX_EVAL_ENVS, EvalResult, evaluate
+from rlpipe.pipeline import load_run
+
+EARLY = 200  # an episode that ends below 0 within this many steps fell at its start
+COPIES, ORDER, CAP = 16, 4, 300  # fresh copies, episodes each, steps an episode at most
+RESULTS = "benchmarks/results/"  # left off the runs' names
+
+
+def early_falls(result: EvalResult) -> int:
+    """Episodes that ended below 0 within :data:`EARLY` steps."""
+    return sum(r < 0 and n <= EARLY for r, n in zip(result.returns, result.lengths))
+
+
+@torch.no_grad()
+def falls_by_order(policy, env_cfg, seed: int) -> list[int]:
+    """Early falls among the 1st, 2nd, ... :data:`ORDER`-th episodes of :data:`COPIES` fresh
+    copies stepped in lock-step (episodes capped at :data:`CAP` steps)."""
+    env = make_env(dataclasses.replace(env_cfg, max_episode_steps=CAP), num_envs=COPIES, seed=seed)
+    counts, done_eps = [0] * ORDER, torch.zeros(COPIES, dtype=torch.long)
+    try:
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
+            td = env.reset()
+            while bool((done_eps < ORDER).any()):
+                td, nxt = env.step_and_maybe_reset(policy(td))
+                ended = td["next", "done"].reshape(COPIES)
+                returns = td["next", "episode_reward"].reshape(COPIES)
+                steps = td["next", "step_count"].reshape(COPIES)
+                for i in ended.nonzero().flatten().tolist():
+                    k = int(done_eps[i])
+                    if k < ORDER and returns[i] < 0 and steps[i] <= EARLY:
+                        counts[k] += 1
+                    done_eps[i] += 1
+                td = nxt
+    finally:
+        env.close()
+    return counts
+
+
+def measure(run: Path, episodes: int, seed: int) -> dict:
+    """The run's three measurements, read back from ``<run>/evaluation`` when saved."""
+    out = run / "evaluation" / f"order-{episodes}-seed{seed}.json"
+    if out.exists():
+        return json.loads(out.read_text())
+    loaded = load_run(run)
+    try:
+        policy, env_cfg = loaded.algo.policy, loaded.cfg.env
+        lockstep = min(episodes, MAX_EVAL_ENVS)
+        figures = {"run": str(run), "backend": env_cfg.backend, "lockstep_copies": lockstep}
+        for name, copies in (("rlpipe", lockstep), ("consecutive", 1)):
+            env = make_env(env_cfg, num_envs=copies, seed=seed)
+            try:
+                result = evaluate(policy, env, episodes)
+            finally:
+                env.close()
+            figures[name] = {"mean": result.mean, "early_falls": early_falls(result)}
+        figures["falls_by_order"] = falls_by_order(policy, env_cfg, seed)
+    finally:
+        loaded.algo.close()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(figures, indent=2) + "\n")
+    return figures
+
+
+def row(run: Path, figures: dict) -> list[str]:
+    """One table row."""
+    name = os.path.relpath(run.parent if run.name == "run" else run).removeprefix(RESULTS)
+    cells = [f"`{name}`", figures["backend"]]
+    for key in ("rlpipe", "consecutive"):
+        cells += [f"{figures[key]['mean']:.1f}", str(figures[key]["early_falls"])]
+    return [*cells, " / ".join(f"{n} of {COPIES}" for n in figures["falls_by_order"])]
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("runs", type=Path, nargs="+", help="trained run dirs")
+    p.add_argument("--episodes", type=int, default=100)
+    p.add_argument("--seed", type=int, default=7, help="the evaluations' seed")
+    p.add_argument("--append", type=Path, help="put the section into this Markdown file")
+    args = p.parse_args()
+    start = os.getloadavg()
+    saved = sum(
+        (run / "evaluation" / f"order-{args.episodes}-seed{args.seed}.json").exists()
+        for run in args.runs
+    )
+    rows = [row(run, measure(run.resolve(), args.episodes, args.seed)) for run in args.runs]
+    copies = min(args.episodes, MAX_EVAL_ENVS)
+    headers = ["run", "backend", f"rlpipe's evaluation ({copies} copies) mean", "its early falls"]
+    headers += ["consecutive on one env: mean", "its early falls"]
+    headers += [f"early falls in episodes 1 / 2 / 3 / 4 of {COPIES} fresh copies"]
+    head = section_head(
+        "Returns by episode order after an env's creation",
+        ["torch", "torchrl", "gymnasium", "envpool", "Box2D"],
+        f"{load_span(start, os.getloadavg())} of this call; {saved} of {len(args.runs)} runs "
+        "read back from earlier calls (returns, which the load does not change)",
+        f"each run's newest checkpoint, {args.episodes} greedy episodes each way, evaluation seed "
+        f"{args.seed}; early fall: an episode ending below 0 within {EARLY} steps; the fresh "
+        f"copies' episodes capped at {CAP} steps",
+    )
+    publish_section("\n".join([*head, table(headers, rows)]), args.append)
+
+
+if __name__ == "__main__":
+    script(main)
