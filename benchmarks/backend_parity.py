@@ -12,7 +12,6 @@ with the same run dirs, episodes and seed continues.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import subprocess
@@ -20,7 +19,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from common import machine, publish_section, script, table
+from common import machine, publish_section, runs_parser, script, table
 
 from rlpipe.rundir import RunDir
 
@@ -68,12 +67,7 @@ def row(run: Path, episodes: int, seed: int) -> list[str]:
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("runs", type=Path, nargs="+", help="trained run dirs")
-    p.add_argument("--episodes", type=int, default=100)
-    p.add_argument("--seed", type=int, default=7, help="the evaluations' seed (both backends)")
-    p.add_argument("--append", type=Path, help="put the section into this Markdown file")
-    args = p.parse_args()
+    args = runs_parser(__doc__.splitlines()[0]).parse_args()
     rows = [row(run.resolve(), args.episodes, args.seed) for run in args.runs]
     headers = ["policy", "trained on", "gymnasium mean [95% CI]", "EnvPool mean [95% CI]"]
     headers += ["EnvPool − gymnasium [95% CI]", "each mean inside the other's CI"]

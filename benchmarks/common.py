@@ -57,6 +57,17 @@ def parser(description: str, seeds: str = "0 1 2") -> argparse.ArgumentParser:
     return p
 
 
+def runs_parser(description: str) -> argparse.ArgumentParser:
+    """Arguments of a benchmark that evaluates trained runs: the run dirs, ``--episodes``, the
+    evaluations' ``--seed`` and an optional Markdown file to publish to."""
+    p = argparse.ArgumentParser(description=description)
+    p.add_argument("runs", type=Path, nargs="+", help="trained run dirs")
+    p.add_argument("--episodes", type=int, default=100)
+    p.add_argument("--seed", type=int, default=7, help="the evaluations' seed")
+    p.add_argument("--append", type=Path, help="put the section into this Markdown file")
+    return p
+
+
 def budget_parser(description: str, frames: int, eval_every: int) -> argparse.ArgumentParser:
     """:func:`parser` plus a frame budget and the greedy-evaluation cadence."""
     p = parser(description)

@@ -17,16 +17,17 @@ back, so a call with the same arguments continues.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import os
 from pathlib import Path
 
 import torch
-from common import load_span, publish_section, script, section_head, table
+from common import load_span, publish_section, runs_parser, script, section_head, table
+from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import ExplorationType, set_exploration_type
 
+from rlpipe.config import EnvConfig
 from rlpipe.envs import make_env
 from rlpipe.episodes import MAX_EVAL_ENVS, EvalResult, evaluate
 from rlpipe.pipeline import load_run
@@ -42,7 +43,7 @@ def early_falls(result: EvalResult) -> int:
 
 
 @torch.no_grad()
-def falls_by_order(policy, env_cfg, seed: int) -> list[int]:
+def falls_by_order(policy: TensorDictModuleBase, env_cfg: EnvConfig, seed: int) -> list[int]:
     """Early falls among the 1st, 2nd, ... :data:`ORDER`-th episodes of :data:`COPIES` fresh
     copies stepped in lock-step (episodes capped at :data:`CAP` steps)."""
     env = make_env(dataclasses.replace(env_cfg, max_episode_steps=CAP), num_envs=COPIES, seed=seed)
@@ -101,12 +102,7 @@ def row(run: Path, figures: dict) -> list[str]:
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("runs", type=Path, nargs="+", help="trained run dirs")
-    p.add_argument("--episodes", type=int, default=100)
-    p.add_argument("--seed", type=int, default=7, help="the evaluations' seed")
-    p.add_argument("--append", type=Path, help="put the section into this Markdown file")
-    args = p.parse_args()
+    args = runs_parser(__doc__.splitlines()[0]).parse_args()
     start = os.getloadavg()
     saved = sum(
         (run / "evaluation" / f"order-{args.episodes}-seed{args.seed}.json").exists()
