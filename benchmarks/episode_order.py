@@ -29,7 +29,8 @@ from torchrl.envs import ExplorationType, set_exploration_type
 
 from rlpipe.config import EnvConfig
 from rlpipe.envs import make_env
-from rlpipe.episodes import MAX_EVAL_ENVS, EvalResult, evaluate
+from rlpipe.episodes import EvalResult, eval_envs, evaluate
+from rlpipe.files import write_atomic
 from rlpipe.pipeline import load_run
 
 EARLY = 200  # an episode that ends below 0 within this many steps fell at its start
@@ -67,15 +68,20 @@ def falls_by_order(policy: TensorDictModuleBase, env_cfg: EnvConfig, seed: int) 
     return counts
 
 
+def saved(run: Path, episodes: int, seed: int) -> Path:
+    """Where :func:`measure` keeps a run's figures."""
+    return run / "evaluation" / f"order-{episodes}-seed{seed}.json"
+
+
 def measure(run: Path, episodes: int, seed: int) -> dict:
     """The run's three measurements, read back from ``<run>/evaluation`` when saved."""
-    out = run / "evaluation" / f"order-{episodes}-seed{seed}.json"
+    out = saved(run, episodes, seed)
     if out.exists():
         return json.loads(out.read_text())
     loaded = load_run(run)
     try:
         policy, env_cfg = loaded.algo.policy, loaded.cfg.env
-        lockstep = min(episodes, MAX_EVAL_ENVS)
+        lockstep = eval_envs(episodes)
         figures = {"run": str(run), "backend": env_cfg.backend, "lockstep_copies": lockstep}
         for name, copies in (("rlpipe", lockstep), ("consecutive", 1)):
             env = make_env(env_cfg, num_envs=copies, seed=seed)
@@ -88,7 +94,7 @@ def measure(run: Path, episodes: int, seed: int) -> dict:
     finally:
         loaded.algo.close()
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(figures, indent=2) + "\n")
+    write_atomic(out, (json.dumps(figures, indent=2) + "\n").encode())
     return figures
 
 
@@ -104,19 +110,16 @@ def row(run: Path, figures: dict) -> list[str]:
 def main() -> None:
     args = runs_parser(__doc__.splitlines()[0]).parse_args()
     start = os.getloadavg()
-    saved = sum(
-        (run / "evaluation" / f"order-{args.episodes}-seed{args.seed}.json").exists()
-        for run in args.runs
-    )
+    read_back = sum(saved(run, args.episodes, args.seed).exists() for run in args.runs)
     rows = [row(run, measure(run.resolve(), args.episodes, args.seed)) for run in args.runs]
-    copies = min(args.episodes, MAX_EVAL_ENVS)
+    copies = eval_envs(args.episodes)
     headers = ["run", "backend", f"rlpipe's evaluation ({copies} copies) mean", "its early falls"]
     headers += ["consecutive on one env: mean", "its early falls"]
     headers += [f"early falls in episodes 1 / 2 / 3 / 4 of {COPIES} fresh copies"]
     head = section_head(
         "Returns by episode order after an env's creation",
         ["torch", "torchrl", "gymnasium", "envpool", "Box2D"],
-        f"{load_span(start, os.getloadavg())} of this call; {saved} of {len(args.runs)} runs "
+        f"{load_span(start, os.getloadavg())} of this call; {read_back} of {len(args.runs)} runs "
         "read back from earlier calls (returns, which the load does not change)",
         f"each run's newest checkpoint, {args.episodes} greedy episodes each way, evaluation seed "
         f"{args.seed}; early fall: an episode ending below 0 within {EARLY} steps; the fresh "
