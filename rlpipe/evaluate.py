@@ -2,14 +2,16 @@
 
 Loads a run's config (``run_dir=latest``: the newest run under ``outputs/``) and its newest
 checkpoint (``checkpoint=best``: the best evaluation's; ``checkpoint=<frames>`` or ``<file>``),
-runs greedy episodes (``render=human``: live in a window), prints mean ± std, min, max and the
-mean episode length, and writes a JSON summary (plus, with ``video=true``, an mp4 of
-``video_episodes`` more greedy episodes). ``policy=random``, ``policy=naive`` (the notebook's
-hand-written BipedalWalker controller) and ``policy=heuristic`` (a hand-written BipedalWalker
-gait) are baselines on the run's env, or on any ``env=<option>`` without a run dir (their
-summary goes to ``outputs/evaluation/<env>-<policy>.json``). The output location is checked
-before any episode runs. A run dir's ``env.id`` of the form ``module:Id`` (which imports
-``module``) is refused unless ``allow_env_import=true``: run dirs are data, not code.
+runs greedy episodes (on ``copies`` env copies in lock-step: by default one per episode up to
+32; ``copies=1``: one after another on one env, the classic "100 consecutive trials";
+``render=human``: live in a window), prints mean ± std, min, max and the mean episode length,
+and writes a JSON summary (plus, with ``video=true``, an mp4 of ``video_episodes`` more greedy
+episodes). ``policy=random``, ``policy=naive`` (the notebook's hand-written BipedalWalker
+controller) and ``policy=heuristic`` (a hand-written BipedalWalker gait) are baselines on the
+run's env, or on any ``env=<option>`` without a run dir (their summary goes to
+``outputs/evaluation/<env>-<policy>.json``). The output location is checked before any episode
+runs. A run dir's ``env.id`` of the form ``module:Id`` (which imports ``module``) is refused
+unless ``allow_env_import=true``: run dirs are data, not code.
 """
 
 from __future__ import annotations
@@ -62,6 +64,9 @@ class EvaluateConfig:
     checkpoint: str | None = None
     policy: str = "trained"  # trained | random | naive | heuristic
     episodes: int = 10
+    # env copies stepped in lock-step, each its share of the episodes; null: one per episode, at
+    # most 32 (fast); 1: the episodes one after another on one env ("100 consecutive trials")
+    copies: int | None = None
     # human: watch the episodes live in a window (one env copy, at the env's frame rate)
     render: str | None = None
     video: bool = False  # also write an mp4 of greedy episodes
@@ -80,6 +85,15 @@ class EvaluateConfig:
 
     def __post_init__(self) -> None:
         check(self.episodes >= 1, f"episodes must be >= 1, got {self.episodes}")
+        check(
+            self.copies is None or 1 <= self.copies <= self.episodes,
+            f"copies must be between 1 and episodes ({self.episodes}) or null (one per episode, "
+            f"at most 32); got {self.copies}",
+        )
+        check(
+            self.render is None or self.copies in (None, 1),
+            f"render=human runs one env copy; drop copies={self.copies} (or render=human)",
+        )
         check(self.video_episodes >= 1, f"video_episodes must be >= 1, got {self.video_episodes}")
         check_fields(self, "", device=("device",))
         check(
@@ -164,7 +178,8 @@ def run(cfg: EvaluateConfig) -> dict[str, Any]:
             check_display("render=human")
             env = make_env(env_cfg, num_envs=1, seed=cfg.seed, render_mode="human")
         else:
-            env = make_env(env_cfg, num_envs=eval_envs(cfg.episodes), seed=cfg.seed)
+            copies = cfg.copies or eval_envs(cfg.episodes)  # each a share, in lock-step
+            env = make_env(env_cfg, num_envs=copies, seed=cfg.seed)
         stack.callback(env.close)
         result = evaluate(policy, env, cfg.episodes)
         summary: dict[str, Any] = {
@@ -174,6 +189,7 @@ def run(cfg: EvaluateConfig) -> dict[str, Any]:
             "run_dir": cfg.run_dir,
             "checkpoint": name.removeprefix("trained-") if cfg.policy == "trained" else None,
             "episodes": cfg.episodes,
+            "copies": env.batch_size.numel(),
             "seed": cfg.seed,
             **result.metrics(prefix=""),
             "returns": result.returns,
@@ -196,9 +212,11 @@ def run(cfg: EvaluateConfig) -> dict[str, Any]:
 def summary_line(summary: dict[str, Any]) -> str:
     """One line: the policy, env and return statistics, and where the files went."""
     what = summary["policy"] + (f" ({summary['checkpoint']})" if summary["checkpoint"] else "")
+    copies = summary["copies"]
+    on = "one env" if copies == 1 else f"{copies} env copies"
     line = (
         f"{what} on {summary['env']}: return {summary['return_mean']:.2f} ± "
-        f"{summary['return_std']:.2f} over {counted(summary['episodes'], 'episode')} "
+        f"{summary['return_std']:.2f} over {counted(summary['episodes'], 'episode')} on {on} "
         f"(min {summary['return_min']:.2f}, max {summary['return_max']:.2f}) | "
         f"episode length {summary['length_mean']:.1f} | summary {summary['json']}"
     )

@@ -28,6 +28,7 @@ FIELDS = {
     "run_dir",
     "checkpoint",
     "episodes",
+    "copies",
     "seed",
     "return_mean",
     "return_std",
@@ -92,6 +93,20 @@ def test_evaluate_baselines(
     summary = json.loads(out.read_text())
     assert summary["policy"] == policy and summary["checkpoint"] is None
     assert len(summary["returns"]) == 2
+
+
+@pytest.mark.parametrize(
+    ("copies", "on"), [(None, "on 4 env copies"), (1, "on one env"), (2, "on 2 env copies")]
+)
+def test_evaluate_copies(
+    run_dir: Path, tmp_path: Path, copies: int | None, on: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``copies`` sets the env copies the episodes share (null: one per episode, up to 32)."""
+    out = tmp_path / "summary.json"
+    main([f"run_dir={run_dir}", "episodes=4", f"copies={copies or 'null'}", f"out={out}"])
+    assert f"over 4 episodes {on} (" in capsys.readouterr().out
+    summary = json.loads(out.read_text())
+    assert summary["copies"] == (copies or 4) and len(summary["returns"]) == 4
 
 
 @NEEDS_VIDEO
@@ -169,6 +184,9 @@ def test_latest_run_best_checkpoint_live_window_and_a_longer_video(
         (["run_dir=RUN", "colour=red"], "colour"),
         (["run_dir=RUN", "+colour=red"], "unknown key 'colour'"),
         (["run_dir=RUN", "episodes=0"], "episodes must be >= 1"),
+        (["run_dir=RUN", "episodes=3", "copies=4"], "copies must be between 1 and episodes (3)"),
+        (["run_dir=RUN", "copies=0"], "copies must be between 1 and episodes (10)"),
+        (["run_dir=RUN", "copies=2", "render=human"], "render=human runs one env copy"),
         (["run_dir=RUN", "device=gpu"], "device must be auto, cpu, cuda or cuda:N, got gpu"),
         (
             ["run_dir=RUN", "checkpoint=150"],
