@@ -57,7 +57,7 @@ def test_another_run_is_refused_and_the_run_still_evaluates(
     assert f"{run_copy} belongs to another run: it differs in {key} (" in line
     assert snapshot(run_copy) == before
     main([f"run_dir={run_copy}", "episodes=1"])  # the run is still whole
-    assert "over 1 episode (" in capsys.readouterr().out
+    assert "over 1 episode on one env (" in capsys.readouterr().out
 
 
 def test_a_larger_total_frames_continues_the_run(tmp_path, run_copy):
