@@ -12,14 +12,11 @@ with the same run dirs, episodes and seed continues.
 
 from __future__ import annotations
 
-import json
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
-from common import machine, publish_section, runs_parser, script, table
+from common import evaluated, machine, publish_section, runs_parser, script, table
 
 from rlpipe.rundir import RunDir
 
@@ -29,11 +26,8 @@ BACKENDS = ("gymnasium", "envpool")
 def evaluation(run: Path, backend: str, episodes: int, seed: int) -> list[float]:
     """The returns of ``episodes`` greedy episodes of ``run``'s newest checkpoint on ``backend``."""
     out = run / "evaluation" / f"parity-{backend}-{episodes}-seed{seed}.json"  # one per call
-    if not out.exists():
-        command = [sys.executable, "-m", "rlpipe.evaluate", f"run_dir={run}"]
-        command += [f"episodes={episodes}", f"backend={backend}", f"seed={seed}", f"out={out}"]
-        subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
-    return json.loads(out.read_text())["returns"]
+    keys = [f"run_dir={run}", f"episodes={episodes}", f"backend={backend}", f"seed={seed}"]
+    return evaluated(out, *keys)["returns"]
 
 
 def ci(values: np.ndarray, rng: np.random.Generator, draws: int = 10_000) -> tuple[float, float]:

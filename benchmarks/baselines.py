@@ -12,15 +12,14 @@ arguments continues where an interrupted one stopped.
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import subprocess
 import sys
 from pathlib import Path
 
-from common import load_span, publish_section, script, section_head, table
+from common import evaluated, load_span, publish_section, script, section_head, table
 
 from rlpipe.episodes import eval_envs
+from rlpipe.errors import RlpipeError
 
 STEPS = 1600  # BipedalWalker-v3's time limit: an episode that ends sooner fell
 NAMES = {
@@ -33,16 +32,12 @@ NAMES = {
 def summary(policy: str, copies: int, args: argparse.Namespace) -> tuple[dict, bool]:
     """One evaluation's JSON summary, and whether it was read back from an earlier call."""
     out = args.out / f"{policy}-{args.episodes}-copies{copies}-seed{args.seed}.json"
-    if out.exists():
-        return json.loads(out.read_text()), True
-    command = [sys.executable, "-m", "rlpipe.evaluate", f"policy={policy}", "env=bipedal"]
-    command += [f"episodes={args.episodes}", f"copies={copies}", f"seed={args.seed}"]
-    command += [f"backend={args.backend}", f"out={out}"]
-    proc = subprocess.run(command, capture_output=True, text=True)
-    if proc.returncode != 0:
-        sys.exit(f"baselines: {' '.join(command[1:])} failed: {proc.stderr.strip()}")
-    print(proc.stdout.strip(), file=sys.stderr, flush=True)
-    return json.loads(out.read_text()), False
+    read_back = out.exists()
+    keys = [f"policy={policy}", "env=bipedal", f"episodes={args.episodes}", f"copies={copies}"]
+    s = evaluated(out, *keys, f"seed={args.seed}", f"backend={args.backend}")
+    if not read_back:
+        print(f"baselines: {policy} on {copies} copies: {s['return_mean']:.2f}", file=sys.stderr)
+    return s, read_back
 
 
 def row(policy: str, copies: int, s: dict) -> list[str]:
@@ -71,11 +66,14 @@ def main() -> None:
     args = p.parse_args()
     start = os.getloadavg()
     rows, read_back = [], 0
-    for policy in args.policies:
-        for copies in (eval_envs(args.episodes), 1):
-            s, old = summary(policy, copies, args)
-            rows.append(row(policy, copies, s))
-            read_back += old
+    try:
+        for policy in args.policies:
+            for copies in (eval_envs(args.episodes), 1):
+                s, old = summary(policy, copies, args)
+                rows.append(row(policy, copies, s))
+                read_back += old
+    except RlpipeError as error:
+        sys.exit(f"baselines: {error}")
     headers = ["policy", "episodes on", "return mean ± std", "min", "max", "episodes above 0"]
     headers += [f"falls (ended before {STEPS:,} steps)", "mean length"]
     head = section_head(

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import json
 import os
 import platform
 import re
@@ -24,6 +25,7 @@ from rlpipe.cli import compose_run
 from rlpipe.console import console_may_close
 from rlpipe.envs import make_env
 from rlpipe.episodes import evaluate
+from rlpipe.errors import check
 from rlpipe.runtime import seed_everything
 
 
@@ -66,6 +68,20 @@ def runs_parser(description: str) -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=7, help="the evaluations' seed")
     p.add_argument("--append", type=Path, help="put the section into this Markdown file")
     return p
+
+
+def evaluated(out: Path, *keys: str) -> dict:
+    """The JSON summary of ``python -m rlpipe.evaluate <keys> out=<out>``, run only while ``out``
+    is not there (a later call reads it back); a failure raises its command and stderr."""
+    if not out.exists():
+        proc = subprocess.run(
+            [sys.executable, "-m", "rlpipe.evaluate", *keys, f"out={out}"],
+            capture_output=True,
+            text=True,
+        )
+        failed = f"rlpipe.evaluate {' '.join(keys)} failed: {proc.stderr.strip()}"
+        check(proc.returncode == 0, failed)
+    return json.loads(out.read_text())
 
 
 def budget_parser(description: str, frames: int, eval_every: int) -> argparse.ArgumentParser:

@@ -16,11 +16,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
 from pathlib import Path
 
-from common import read_scalar
+from common import evaluated, read_scalar
 from presets_table import PRESETS
 
 from rlpipe.episodes import FINAL, episodes_seed
@@ -40,19 +39,18 @@ def stopped_record(saved: dict, run: Path, seed: int, i: int, episodes: int, out
     """``saved`` (a record of ``run``) as if the run had stopped after its ``i``-th eval."""
     frames = int(saved["evals"][i][0])
     final = out / f"final-{frames}.json"
-    if not final.exists():
-        check(run.is_dir(), f"{run} is gone: its stop at {frames:,} frames cannot be evaluated")
-        command = [sys.executable, "-m", "rlpipe.evaluate", f"run_dir={run}"]
-        command += [f"checkpoint={frames}", f"episodes={episodes}", "allow_env_import=true"]
-        command += [f"seed={episodes_seed(seed, FINAL)}", f"out={final}"]
-        proc = subprocess.run(command, capture_output=True, text=True)
-        check(proc.returncode == 0, f"{' '.join(command[1:])} failed: {proc.stderr.strip()}")
+    check(
+        final.exists() or run.is_dir(),
+        f"{run} is gone: its stop at {frames:,} frames cannot be evaluated",
+    )
+    keys = [f"run_dir={run}", f"checkpoint={frames}", f"episodes={episodes}"]
+    summary = evaluated(final, *keys, "allow_env_import=true", f"seed={episodes_seed(seed, FINAL)}")
     elapsed = dict(read_scalar(run, "time/elapsed"))
     seconds = dict(read_scalar(run, "time/eval_seconds"))
     return {
         **saved,
         "evals": saved["evals"][: i + 1],
-        "final": json.loads(final.read_text())["return_mean"],
+        "final": summary["return_mean"],
         "wall": elapsed[frames] + seconds[frames],  # to the end of the eval that stopped it
         "stopped_at": frames,
         "ran_to": saved["evals"][-1][0],
