@@ -7,7 +7,8 @@ StopTrainingOnRewardThreshold, over a window). The derived record in ``DST`` hol
 the stop, the final greedy eval of the checkpoint there (``python -m rlpipe.evaluate
 checkpoint=<frames>``, the preset's final episodes and the seed the final eval uses) and the wall
 seconds to that eval's end; a run that never met the stop keeps its own record. ``DST`` is an arm
-for ``benchmarks/screen.py``; a call continues where an earlier one stopped.
+for ``benchmarks/screen.py``; a call continues where an earlier one stopped, and ends with how many
+stopped runs fell back (an eval below the preset's fell-below) in the full run after their stop.
 
     python benchmarks/early_stop.py --preset ars_bipedal SRC DST [--window 3]
 """
@@ -58,31 +59,48 @@ def stopped_record(saved: dict, run: Path, seed: int, i: int, episodes: int, out
     }
 
 
+def lowest_after(saved: dict, stopped_at: int) -> float | None:
+    """The lowest of the full run's evals after its stop (None: it stopped at its last eval)."""
+    return min((m for f, m, _ in saved["evals"] if f > stopped_at), default=None)
+
+
 def derive(src: Path, dst: Path, preset: str, window: int) -> list[str]:
-    """Derive ``dst``'s records from ``src``'s finished runs; a line per run."""
-    p, lines = PRESETS[preset], []
+    """Derive ``dst``'s records from ``src``'s finished runs: a line per new record, then how many
+    stopped runs (new or derived before) fell back in the full run after their stop."""
+    p, lines, lows = PRESETS[preset], [], {}
     for meta in sorted((src / preset).glob("seed*/rlpipe.json")):
         saved = json.loads(meta.read_text())
         if "evals" not in saved:
             continue
         seed, target = int(meta.parent.name.removeprefix("seed")), dst / preset / meta.parent.name
-        if (target / "rlpipe.json").exists():
-            continue
-        i = stop_index([m for _, m, _ in saved["evals"]], p.target, window)
-        if i is None:
+        new = not (target / "rlpipe.json").exists()
+        if not new:
+            record = json.loads((target / "rlpipe.json").read_text())
+        elif (i := stop_index([m for _, m, _ in saved["evals"]], p.target, window)) is None:
             record, line = saved, "never met the stop: its own record"
         else:
             target.mkdir(parents=True, exist_ok=True)
-            run = meta.parent / "run"
-            record = stopped_record(saved, run, seed, i, p.final_episodes, target)
+            record = stopped_record(saved, meta.parent / "run", seed, i, p.final_episodes, target)
+            low = lowest_after(saved, record["stopped_at"])
             line = (
                 f"stopped at {record['stopped_at']:,} of {record['ran_to']:,} frames, final "
                 f"{record['final']:.1f} (at the end {record['final_at_end']:.1f}), "
-                f"{record['wall']:.0f} s of {saved['wall']:.0f}"
+                f"{record['wall']:.0f} s of {saved['wall']:.0f}, lowest eval after it "
+                + ("none" if low is None else f"{low:.1f}")
             )
-        target.mkdir(parents=True, exist_ok=True)
-        write_atomic(target / "rlpipe.json", (json.dumps(record, indent=1) + "\n").encode())
-        lines.append(f"early_stop: {preset} seed {seed}: {line}")
+        if "stopped_at" in record:
+            lows[seed] = lowest_after(saved, record["stopped_at"])
+        if new:
+            target.mkdir(parents=True, exist_ok=True)
+            write_atomic(target / "rlpipe.json", (json.dumps(record, indent=1) + "\n").encode())
+            lines.append(f"early_stop: {preset} seed {seed}: {line}")
+    fell = [s for s, low in lows.items() if low is not None and low < p.fell_below]
+    if lows:
+        lines.append(
+            f"early_stop: {preset}: {len(fell)} of {len(lows)} stopped runs fell below "
+            f"{p.fell_below:g} in the full run's evals after the stop"
+            + (f" (seeds {', '.join(map(str, fell))})" if fell else "")
+        )
     return lines
 
 

@@ -56,6 +56,12 @@ class Preset:
     # seeds run after tuning besides the held-out ones, as a check (they are in tuned_on too)
     more_seeds: str = ""
 
+    @property
+    def fell_below(self) -> float:
+        """An eval below this, once one reached the target, fell back: the target less a tenth of
+        target - floor."""
+        return self.target - 0.1 * (self.target - self.floor)
+
     def normalised(self, score: float) -> float:
         """``score`` on the scale where the random policy is 0 and the target 1."""
         return (score - self.floor) / (self.target - self.floor)

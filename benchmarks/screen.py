@@ -66,7 +66,7 @@ def median_text(values: list[float], fmt: str) -> str:
 def report(preset: str, arms: dict[str, dict[int, Run]], below: float | None = None) -> str:
     """The screen's Markdown: what the arms share, a row per arm, and each arm's misses."""
     p = PRESETS[preset]
-    below = p.target - 0.1 * (p.target - p.floor) if below is None else below
+    below = p.fell_below if below is None else below
     seeds = sorted(set.intersection(*(set(runs) for runs in arms.values())))
     check(bool(seeds), "the arms share no finished seed: compare arms run on the same seeds")
     (first, base), rows, misses = next(iter(arms.items())), [], []

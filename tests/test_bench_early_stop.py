@@ -29,6 +29,13 @@ def test_stop_index_is_the_first_window_at_the_target(early_stop):
     assert early_stop.stop_index([500, 500], 500, 3) is None
 
 
+def test_lowest_after_reads_the_full_run_past_the_stop(early_stop):
+    saved = {"evals": [[100, 310.0, 1.0], [200, 250.0, 1.0], [300, 320.0, 1.0]]}
+    assert early_stop.lowest_after(saved, 100) == 250.0
+    assert early_stop.lowest_after(saved, 200) == 320.0
+    assert early_stop.lowest_after(saved, 300) is None
+
+
 def test_early_stop_derives_a_stopped_arm(run_copy: Path, tmp_path: Path) -> None:
     """Seed 1's evals (made up: 500 at 100 frames, 20 at 200) meet dqn_cartpole's target at 100
     frames; seed 2's never do."""
@@ -42,7 +49,10 @@ def test_early_stop_derives_a_stopped_arm(run_copy: Path, tmp_path: Path) -> Non
     proc = subprocess.run(command, capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
     assert "seed 1: stopped at 100 of 200 frames" in proc.stdout
+    assert "lowest eval after it 20.0" in proc.stdout
     assert "seed 2: never met the stop" in proc.stdout
+    fell = "early_stop: dqn_cartpole: 1 of 1 stopped runs fell below 452.1 in the full run's"
+    assert proc.stdout.splitlines()[-1].startswith(fell) and "(seeds 1)" in proc.stdout
     stopped = json.loads((dst / "dqn_cartpole" / "seed1" / "rlpipe.json").read_text())
     final = json.loads((dst / "dqn_cartpole" / "seed1" / "final-100.json").read_text())
     assert stopped["evals"] == [[100, 500.0, 1.0]] and stopped["stopped_at"] == 100
@@ -53,7 +63,8 @@ def test_early_stop_derives_a_stopped_arm(run_copy: Path, tmp_path: Path) -> Non
     assert kept == json.loads((src / "seed2" / "rlpipe.json").read_text())
     stamp = (dst / "dqn_cartpole" / "seed1" / "rlpipe.json").stat().st_mtime_ns
     again = subprocess.run(command, capture_output=True, text=True)
-    assert again.returncode == 0 and again.stdout == "", again.stderr
+    assert again.returncode == 0, again.stderr
+    assert again.stdout.splitlines() == proc.stdout.splitlines()[-1:]  # the count, nothing redone
     assert (dst / "dqn_cartpole" / "seed1" / "rlpipe.json").stat().st_mtime_ns == stamp
 
 
