@@ -77,23 +77,26 @@ def derive(src: Path, dst: Path, preset: str, window: int) -> list[str]:
         if not new:
             record = json.loads((target / "rlpipe.json").read_text())
         elif (i := stop_index([m for _, m, _ in saved["evals"]], p.target, window)) is None:
-            record, line = saved, "never met the stop: its own record"
+            record = saved
         else:
-            target.mkdir(parents=True, exist_ok=True)
+            target.mkdir(parents=True, exist_ok=True)  # the stop's final eval is saved there
             record = stopped_record(saved, meta.parent / "run", seed, i, p.final_episodes, target)
-            low = lowest_after(saved, record["stopped_at"])
+        if "stopped_at" in record:
+            lows[seed] = lowest_after(saved, record["stopped_at"])
+        if not new:
+            continue
+        target.mkdir(parents=True, exist_ok=True)
+        write_atomic(target / "rlpipe.json", (json.dumps(record, indent=1) + "\n").encode())
+        line = "never met the stop: its own record"
+        if seed in lows:
+            low = lows[seed]
             line = (
                 f"stopped at {record['stopped_at']:,} of {record['ran_to']:,} frames, final "
                 f"{record['final']:.1f} (at the end {record['final_at_end']:.1f}), "
                 f"{record['wall']:.0f} s of {saved['wall']:.0f}, lowest eval after it "
                 + ("none" if low is None else f"{low:.1f}")
             )
-        if "stopped_at" in record:
-            lows[seed] = lowest_after(saved, record["stopped_at"])
-        if new:
-            target.mkdir(parents=True, exist_ok=True)
-            write_atomic(target / "rlpipe.json", (json.dumps(record, indent=1) + "\n").encode())
-            lines.append(f"early_stop: {preset} seed {seed}: {line}")
+        lines.append(f"early_stop: {preset} seed {seed}: {line}")
     fell = [s for s, low in lows.items() if low is not None and low < p.fell_below]
     if lows:
         lines.append(
