@@ -26,6 +26,7 @@ from rlpipe.config import Config
 from rlpipe.stats import iqm, pooled_iqm, pooled_iqm_band
 
 DASH = "–"
+TUNING_LOG = "docs/tuning.md"  # a section per preset: what was tried, the checks run after
 SHARED = "‡"  # beside a side's figures evaluated on the starts every seed met
 SHARED_NOTE = (
     f"{SHARED} beside a seed's or preset's seeds (rlpipe) or its SB3 solved cell: evaluated "
@@ -288,8 +289,8 @@ def legend(runs: list[Run]) -> list[str]:
 
 def note(p: Preset, cfg: Config, ours: Side, theirs: Side, with_sb3: bool = True) -> str:
     """What the preset's row stands on: target and its source, tuning seeds, evals, SB3 (where
-    ``with_sb3``: the section has SB3's side), and, where the row's runs stay short of 8 of 10
-    seeds or of half SB3's time to the target, why."""
+    ``with_sb3``: the section has SB3's side), where the row's runs stay short of 8 of 10 seeds
+    or of half SB3's time to the target, why, and a link to its section of the tuning log."""
     text = (
         f"- `{p.experiment}`: target {p.target:g} ({p.target_from}); random policy {p.floor:g}; "
         f"tuned on seeds {seed_text(p.tuned_on)}; a greedy eval of {cfg.eval_episodes} episodes "
@@ -302,13 +303,13 @@ def note(p: Preset, cfg: Config, ours: Side, theirs: Side, with_sb3: bool = True
         normalize = ", VecNormalize(norm_obs=True, norm_reward=False)" if p.sb3_normalize else ""
         text += f"; SB3: {p.sb3_algo}('{p.sb3_policy}', {kwargs}{normalize})"
     text += f"; **short of 8 of 10 held-out seeds**: {p.short_of}" if short(p, ours) else ""
-    text += f"; {p.more_seeds}" if p.more_seeds else ""
     text += (
         f"; **time to the target above {SPEED_TARGET:g}× SB3's**: {p.slow}"
         if slow(p, ours, theirs)
         else ""
     )
-    return text
+    log = f"[{TUNING_LOG}]({TUNING_LOG}#{p.experiment})"
+    return text + f"; what was tried, and seeds run as checks: {log}"
 
 
 HEADERS = [

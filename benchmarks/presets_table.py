@@ -49,12 +49,11 @@ class Preset:
     # hours-long presets: both sides save at every eval, and a call that finds an interrupted
     # run in --out continues it (rlpipe from its newest checkpoint, SB3 from its newest save)
     resumable: bool = False
-    # where the preset stays short of 8 of 10 held-out seeds: why, and what was tried
+    # where the preset stays short of 8 of 10 held-out seeds: why, in a sentence (what was tried:
+    # its section of docs/tuning.md)
     short_of: str = ""
-    # where its time to the target stays above SPEED_TARGET x SB3's: why, and what was tried
+    # where its time to the target stays above SPEED_TARGET x SB3's: why, in a sentence
     slow: str = ""
-    # seeds run after tuning besides the held-out ones, as a check (they are in tuned_on too)
-    more_seeds: str = ""
 
     @property
     def fell_below(self) -> float:
