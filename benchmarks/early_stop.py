@@ -76,16 +76,18 @@ def derive(src: Path, dst: Path, preset: str, window: int) -> list[str]:
         new = not (target / "rlpipe.json").exists()
         if not new:
             record = json.loads((target / "rlpipe.json").read_text())
-        elif (i := stop_index([m for _, m, _ in saved["evals"]], p.target, window)) is None:
-            record = saved
         else:
-            target.mkdir(parents=True, exist_ok=True)  # the stop's final eval is saved there
-            record = stopped_record(saved, meta.parent / "run", seed, i, p.final_episodes, target)
+            target.mkdir(parents=True, exist_ok=True)  # the record and a stop's final eval
+            i = stop_index([m for _, m, _ in saved["evals"]], p.target, window)
+            record = (
+                saved
+                if i is None
+                else stopped_record(saved, meta.parent / "run", seed, i, p.final_episodes, target)
+            )
         if "stopped_at" in record:
             lows[seed] = lowest_after(saved, record["stopped_at"])
         if not new:
             continue
-        target.mkdir(parents=True, exist_ok=True)
         write_atomic(target / "rlpipe.json", (json.dumps(record, indent=1) + "\n").encode())
         line = "never met the stop: its own record"
         if seed in lows:
