@@ -19,7 +19,13 @@ from torch import nn
 from torch.nn.utils import parameters_to_vector, vector_to_parameters
 
 from rlpipe.algos import ARS, Algorithm, ARSConfig
-from rlpipe.algos.ars import ARSSearch, PopulationPolicy, ars_update, make_ars_policy
+from rlpipe.algos.ars import (
+    ARSSearch,
+    PopulationPolicy,
+    ars_update,
+    centered_ranks,
+    make_ars_policy,
+)
 from rlpipe.config import EnvConfig
 from rlpipe.envs import make_env
 from rlpipe.errors import RlpipeError
@@ -41,6 +47,13 @@ def test_update_rule_by_hand():
     step = 2.0 * deltas[0] - 2.0 * deltas[1]
     expected = 0.1 / (2 * 1.25**0.5) * step
     assert torch.allclose(ars_update(theta, deltas, plus, minus, 2, 0.1), expected)
+
+
+def test_centered_ranks_span_minus_half_to_half_in_order():
+    values = torch.tensor([3.0, -100.0, 5.0, 5.0, 0.0], dtype=torch.float64)
+    expected = torch.tensor([0.0, -0.5, 0.25, 0.5, -0.25], dtype=torch.float64)
+    torch.testing.assert_close(centered_ranks(values), expected)  # ties: in the order they come
+    torch.testing.assert_close(centered_ranks(torch.tensor([7.0])), torch.tensor([-0.5]))
 
 
 def test_update_rule_climbs_a_quadratic_to_its_optimum():
@@ -352,6 +365,7 @@ BAD = [
     (["algo.starts=0"], "algo.starts must be"),
     (["algo.bound_penalty=-0.1"], "algo.bound_penalty must be a finite number >= 0, got -0.1"),
     (["algo.starts_until=1"], "algo.starts_until must be in (0, 1)"),
+    (["algo.fitness=rank"], "algo.fitness must be one of returns, ranks; got 'rank'"),
     (
         ["algo.reward_clip=false", "algo.reward_clip_end=10"],
         "algo.reward_clip_end must be null, or a number > 0 with algo.reward_clip true or a number",

@@ -18,7 +18,7 @@ from torch import nn
 from torch.nn.utils import parameters_to_vector
 
 from rlpipe.algos import ARSConfig
-from rlpipe.algos.ars import ARSSearch, make_ars_policy
+from rlpipe.algos.ars import ARSSearch, ars_update, centered_ranks, make_ars_policy
 from rlpipe.algos.ars.rollout import rollout
 from rlpipe.envs import make_env
 from rlpipe.episodes import evaluate
@@ -114,6 +114,24 @@ def test_bound_penalty_takes_the_outputs_past_the_bounds_off_the_training_return
     torch.testing.assert_close(
         own.returns - penalised.returns, torch.tensor([0, 0, 20, 60.0]).double()
     )
+
+
+def test_ranks_fitness_updates_on_the_centered_ranks_of_the_returns():
+    """fitness="ranks": θ moves by the ARS rule on the 2N returns' centred ranks, with the
+    directions the search drew."""
+    search = small_search(3, fitness="ranks", num_best=2, step_size=0.05)
+    theta, state = search.theta, search.generator.get_state()
+    try:
+        stats = search.step()
+    finally:
+        search.close()
+    deltas = torch.randn(3, theta.numel(), generator=torch.Generator().set_state(state))
+    returns = torch.tensor(stats["episode_return"], dtype=torch.float64)
+    assert len(set(returns.tolist())) > 1  # the ranks are not all one
+    plus, minus = centered_ranks(returns).float().chunk(2)
+    torch.testing.assert_close(search.theta, ars_update(theta, deltas, plus, minus, 2, 0.05))
+    with pytest.raises(RlpipeError, match="^fitness must be one of returns, ranks; got 'rank'"):
+        small_search(3, fitness="rank")
 
 
 def test_bound_penalty_is_checked():

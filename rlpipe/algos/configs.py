@@ -17,6 +17,7 @@ BASELINES = ("none", "value")
 PLANNERS = ("cem", "random")
 ARS_POLICIES = ("linear", "mlp")
 ARS_BACKENDS = ("local", "ray")
+ARS_FITNESS = ("returns", "ranks")
 # the parameters that ARSSearch takes and ARSConfig holds under the same names, checked by
 # check_search_params for both
 SEARCH_PARAMS = (
@@ -25,6 +26,7 @@ SEARCH_PARAMS = (
     "step_size",
     "noise",
     "bound_penalty",
+    "fitness",
     "workers",
     "backend",
 )
@@ -242,6 +244,7 @@ def check_search_params(params: Any, prefix: str) -> None:
         f"{prefix}num_best ({params.num_best}) must be between 1 and {prefix}num_directions "
         f"({params.num_directions})",
     )
+    check_choice(params.fitness, f"{prefix}fitness", ARS_FITNESS)
     check_choice(params.backend, f"{prefix}backend", ARS_BACKENDS)
 
 
@@ -287,6 +290,10 @@ class ARSConfig(AlgoConfig):
     # continuous actions: c x the sum of |raw output - clamped action| taken off every training
     # reward, so that the search stays where a perturbation changes the actions (0: none)
     bound_penalty: float = 0.0
+    # what weighs the directions: returns (the ARS paper's), or ranks (each of the 2N training
+    # returns replaced by its centred rank in [-0.5, 0.5], as OpenAI's ES does: a rollout that
+    # falls ranks last, but no longer outweighs the other directions by the reward it lost)
+    fitness: str = "returns"
     # several starts searched in turn, the worse half dropped at each of ceil(log2(starts))
     # rungs, one left after the first starts_until of the run (rlpipe/algos/ars/starts.py)
     starts: int = checked(1, "at_least_one")

@@ -21,7 +21,7 @@ from rlpipe.algos.ars.algorithm import ARS, ARSConfig, RayConfig, make_ars_polic
 from rlpipe.algos.ars.backends import BACKENDS, WorkerDied
 from rlpipe.algos.ars.population import PopulationPolicy, batched_call, numpy_layer
 from rlpipe.algos.ars.rollout import RolloutResult
-from rlpipe.algos.ars.search import ARSSearch, ars_update
+from rlpipe.algos.ars.search import ARSSearch, ars_update, centered_ranks
 
 __all__ = [
     "ARS",
@@ -34,6 +34,7 @@ __all__ = [
     "WorkerDied",
     "ars_update",
     "batched_call",
+    "centered_ranks",
     "make_ars_policy",
     "numpy_layer",
 ]

@@ -18,7 +18,7 @@ from rlpipe.envs import EnvFactory
 from rlpipe.errors import check, check_fields
 from rlpipe.normalizer import Normalizer
 
-__all__ = ["ARSSearch", "ars_update"]
+__all__ = ["ARSSearch", "ars_update", "centered_ranks"]
 
 
 class ARSSearch:
@@ -61,6 +61,10 @@ class ARSSearch:
             that output clamped into the action bounds, so that the search keeps away from
             outputs far past the bounds (a bang-bang policy that a perturbation hardly
             changes). Continuous actions only. Default 0.0: none.
+        fitness: ``"returns"`` (the default: the ARS paper's update on the training returns)
+            or ``"ranks"``: the ``2N`` training returns replaced by their centred ranks
+            (:func:`centered_ranks`) before the top-b selection and the update, so that one
+            rollout's fall weighs no more than its place.
         normalizer: the :class:`Normalizer` inside ``policy`` whose statistics the search
             updates after every iteration (below). Default None: no statistics are kept.
         workers: ``"local"``: processes rolling out the members in chunks (1, the default: all
@@ -77,10 +81,10 @@ class ARSSearch:
             Default 0.
 
     A bad ``num_directions``, ``num_best``, ``step_size``, ``noise``, ``max_steps``,
-    ``bound_penalty``, ``workers`` or ``backend`` raises :class:`rlpipe.RlpipeError` naming
-    it. The backend (env copies, worker processes or actors) starts with the first
-    :meth:`step`, or :meth:`start`: a search built only to hold its policy, or to load a state,
-    starts nothing. :meth:`close` stops it.
+    ``bound_penalty``, ``fitness``, ``workers`` or ``backend`` raises
+    :class:`rlpipe.RlpipeError` naming it. The backend (env copies, worker processes or
+    actors) starts with the first :meth:`step`, or :meth:`start`: a search built only to hold
+    its policy, or to load a state, starts nothing. :meth:`close` stops it.
 
     The normaliser (ARS V2) goes in two places, as one and the same object: as a module inside
     ``policy``, ahead of the layers that read its output (so that every rollout standardises
@@ -125,6 +129,7 @@ class ARSSearch:
         reward_offset: float = 0.0,
         reward_clip: float | None = None,
         bound_penalty: float = 0.0,
+        fitness: str = "returns",
         normalizer: Normalizer | None = None,
         workers: int = 1,
         backend: str = "local",
@@ -136,7 +141,7 @@ class ARSSearch:
         self.num_best = num_directions if num_best is None else num_best
         self.step_size, self.noise, self.reward_clip = step_size, noise, reward_clip
         self.max_steps, self.workers, self.backend = max_steps, workers, backend
-        self.bound_penalty = bound_penalty
+        self.bound_penalty, self.fitness = bound_penalty, fitness
         check_search_params(self, "")
         check_fields(self, "", at_least_one=("max_steps",))
         check(
@@ -209,7 +214,8 @@ class ARSSearch:
             returns[members] = result.returns
             raw[members] = result.raw_returns
             lengths[members] = result.lengths.double()
-        plus, minus = returns.float().chunk(2)
+        weights = centered_ranks(returns) if self.fitness == "ranks" else returns
+        plus, minus = weights.float().chunk(2)
         self.theta = ars_update(theta, deltas, plus, minus, self.num_best, self.step_size)
         if self.normalizer is not None:
             for _, result in shares:
@@ -267,3 +273,11 @@ def ars_update(
     sigma = torch.cat([plus, minus]).std(unbiased=False).clamp(min=1e-8)
     step = ((plus - minus).unsqueeze(-1) * deltas[top]).sum(0)
     return theta + step_size / (num_best * sigma) * step
+
+
+def centered_ranks(values: torch.Tensor) -> torch.Tensor:
+    """Each value's rank among ``values`` (a 1-D tensor), scaled to ``[-0.5, 0.5]``: the
+    lowest -0.5, the highest 0.5 (ties in the order they come)."""
+    ranks = torch.empty_like(values)
+    ranks[values.argsort(stable=True)] = torch.arange(len(values), dtype=values.dtype)
+    return ranks / max(len(values) - 1, 1) - 0.5
