@@ -252,7 +252,9 @@ def section(
             + f"{under_way[name]})"
             for name, by in sides.items()
         )
-        facts.append(f"not in `--out`, left out (`--read-only`): {left}")
+        facts.append(
+            f"no record in `--out` of the preset as it is now, left out (`--read-only`): {left}"
+        )
     if args.figure is not None:
         shown = args.figure
         if args.append:
