@@ -64,12 +64,13 @@ def main() -> None:
                     out.parent.mkdir(parents=True, exist_ok=True)
                     jobs[preset, seed, side] = pool.submit(run, python, extra, preset, seed, out)
     results = {key: job.result() for key, job in jobs.items()}
+    ran = sum(r["ran"] for r in results.values())
+    read = "; the others were read back from --out" if ran < len(results) else ""
     head = section_head(
         "The same learning before and after",
         ["torch", "torchrl", "tensordict", "gymnasium"],
         load_span(start, os.getloadavg())
-        + f" ({sum(r['ran'] for r in results.values())} of {len(results)} runs ran in this call; "
-        "the others were read back from --out)",
+        + f" ({ran} of {len(results)} runs ran in this call{read})",
         f"before: {args.before_label}; both sides on gymnasium's envs, {args.jobs} runs at once",
         "final eval: the mean return of the run's final greedy evaluation (summary.json); "
         "late training return: the mean return of its training episodes that ended in the last "
