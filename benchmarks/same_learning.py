@@ -41,6 +41,13 @@ def run(python: str, extra: list[str], preset: str, seed: int, out: Path) -> dic
     return {**summary, "train_seconds": seconds, "late_return": statistics.mean(late), "ran": ran}
 
 
+def ran_note(results: dict) -> str:
+    """How many of the runs this call ran, and whether the rest came back from ``--out``."""
+    ran = sum(r["ran"] for r in results.values())
+    read = "; the others were read back from --out" if ran < len(results) else ""
+    return f"{ran} of {len(results)} runs ran in this call{read}"
+
+
 def main() -> None:
     p = parser(__doc__.splitlines()[0])
     p.set_defaults(seeds=[0, 1, 2, 3, 4])
@@ -64,13 +71,10 @@ def main() -> None:
                     out.parent.mkdir(parents=True, exist_ok=True)
                     jobs[preset, seed, side] = pool.submit(run, python, extra, preset, seed, out)
     results = {key: job.result() for key, job in jobs.items()}
-    ran = sum(r["ran"] for r in results.values())
-    read = "; the others were read back from --out" if ran < len(results) else ""
     head = section_head(
         "The same learning before and after",
         ["torch", "torchrl", "tensordict", "gymnasium"],
-        load_span(start, os.getloadavg())
-        + f" ({ran} of {len(results)} runs ran in this call{read})",
+        load_span(start, os.getloadavg()) + f" ({ran_note(results)})",
         f"before: {args.before_label}; both sides on gymnasium's envs, {args.jobs} runs at once",
         "final eval: the mean return of the run's final greedy evaluation (summary.json); "
         "late training return: the mean return of its training episodes that ended in the last "

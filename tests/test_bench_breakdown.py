@@ -80,3 +80,11 @@ def test_a_finished_run_is_read_back_not_run_again(bench, tmp_path):
     result = same.run("/nonexistent/python", [], "dqn_cartpole", 0, run)  # would fail if run
     assert (result["eval_mean"], result["train_seconds"], result["ran"]) == (480.5, 21.5, False)
     assert result["late_return"] == 400.0
+
+
+def test_the_load_line_says_runs_were_read_back_only_when_some_were(bench):
+    _, same = bench
+    assert same.ran_note({1: {"ran": True}, 2: {"ran": True}}) == "2 of 2 runs ran in this call"
+    assert same.ran_note({1: {"ran": True}, 2: {"ran": False}}) == (
+        "1 of 2 runs ran in this call; the others were read back from --out"
+    )
