@@ -162,6 +162,8 @@ def summary_row(preset: Preset, cfg: Config, ours: Side, theirs: Side, where: st
     cells = [f"`{preset.experiment}`", preset.env, budget(cfg, ours.runs), f"{preset.target:g}"]
     solved = ours.solved() + (" (short of 8/10: see its note)" if short(preset, ours) else "")
     seeds = seed_text([r.seed for r in ours.runs]) + _shared(ours.runs)
+    if not ours.runs:  # left out (--read-only), as the line above the table says: no 0/0
+        solved, frames, seconds = "no record: left out", DASH, DASH
     cells += [seeds, solved, iqm_cell(ours.finals)]
     cells += [frames, seconds]
     if not theirs.runs:

@@ -284,6 +284,22 @@ def test_a_section_without_sb3s_side_leaves_its_settings_out_of_the_notes(bench)
     assert "SB3: DQN('MlpPolicy'" in beside and "SB3 has no model-based RL" in beside
 
 
+def test_a_preset_with_no_record_says_left_out_not_0_of_0(bench) -> None:
+    """A preset --read-only left out (no record of it as it is now) keeps its row, saying so,
+    with no "0/0" solved or reached that reads as a run that solved nothing."""
+    report, presets = bench.report, bench.presets_table.PRESETS
+    cfg = SimpleNamespace(total_frames=40_000, eval_episodes=10, eval_every=10_000)
+    both = [presets["dqn_cartpole"], presets["mbrl_pendulum"]]
+    ours = [run(bench, 100, [100, 500, 500, 500], 500.0)]  # dqn_cartpole's only
+    rows = [x for x in report.tables(both, {p.experiment: cfg for p in both}, ours) if x]
+    table = rows[0].splitlines()
+    left = dict(zip(report.HEADERS, table[3].strip("| ").split(" | ")))
+    assert left["preset"] == "`mbrl_pendulum`", table
+    assert left["solved"] == "no record: left out" and "0/0" not in table[3], table[3]
+    ran = dict(zip(report.HEADERS, table[2].strip("| ").split(" | ")))
+    assert ran["solved"] == "1/1" and ran["frames to target"].endswith("1/1 reached"), ran
+
+
 def test_a_time_to_the_target_above_half_sb3s_is_flagged_and_its_note_says_why(bench) -> None:
     report = bench.report
     preset = bench.presets_table.PRESETS["dqn_cartpole"]
