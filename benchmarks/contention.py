@@ -21,7 +21,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from common import load_span, publish_section, script, section_head, table
+from common import busy, load_span, publish_section, script, section_head, table
 
 SETTINGS = {"default (threads=auto)": [], "threads=1": ["threads=1"], "threads=2": ["threads=2"]}
 CONDITIONS = ("alone", "beside a CPU-bound process")
@@ -47,11 +47,6 @@ def run_once(frames: int, overrides: list[str]) -> float:
         return json.loads((Path(tmp) / "summary.json").read_text())["wall_time"]
 
 
-def competitor() -> subprocess.Popen:
-    """A process that keeps one core busy until it is killed."""
-    return subprocess.Popen([sys.executable, "-c", "while True: pass"])
-
-
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--frames", type=int, default=4000)
@@ -61,15 +56,10 @@ def main() -> None:
     walls: dict[tuple[str, str], list[float]] = {}
     load_before = os.getloadavg()
     for condition in CONDITIONS:
-        busy = competitor() if condition != "alone" else None
-        try:
+        with busy(condition != "alone"):
             for _ in range(args.rounds):
                 for name, overrides in SETTINGS.items():
                     walls.setdefault((condition, name), []).append(run_once(args.frames, overrides))
-        finally:
-            if busy is not None:
-                busy.kill()
-                busy.wait()
     rows, verdicts = [], []
     for condition in CONDITIONS:
         medians = {name: statistics.median(walls[condition, name]) for name in SETTINGS}
