@@ -68,8 +68,19 @@ def test_state_dict_round_trip_continues_the_same_turns():
 
 def _ars(**kw) -> ARS:
     torch.manual_seed(0)
-    cfg = ARSConfig(num_directions=2, num_best=1, workers=1, total_frames=3000, **kw)
+    kw = {"total_frames": 3000, **kw}
+    cfg = ARSConfig(num_directions=2, num_best=1, workers=1, **kw)
     return ARS(partial(make_env, CARTPOLE), cfg)
+
+
+def test_a_start_the_budget_ends_before_its_turn_says_not_run(capsys):
+    """A budget spent within the first iteration halves the starts before the second has run:
+    its line says so, not a return of -inf."""
+    algo = _ars(starts=2, starts_until=0.2, total_frames=10)
+    algo.train_step()
+    said = [line for line in capsys.readouterr().out.splitlines() if "ARS starts" in line]
+    assert len(said) == 1 and said[0].endswith("; dropped not run)"), said
+    assert "inf" not in said[0]
 
 
 def test_ars_runs_starts_until_one_remains_and_resumes_exactly(capsys):

@@ -3,6 +3,7 @@ running observation normaliser, evolved by :class:`rlpipe.algos.ars.ARSSearch`."
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Collection
 from functools import partial
@@ -136,7 +137,9 @@ class ARS(Algorithm):
     def _halving_line(self, dropped: list[int], when: str) -> str:
         """The console's line on a halving of the starts: who stays, who goes, on what scores."""
         starts = self.starts
-        kept, gone = ([f"{starts.score(k):.1f}" for k in ks] for ks in (starts.live, dropped))
+        scores = ([starts.score(k) for k in ks] for ks in (starts.live, dropped))
+        # a start the budget ended before its first turn has no return to show
+        kept, gone = ([f"{x:.1f}" if x > -math.inf else "not run" for x in xs] for xs in scores)
         return (
             f"rlpipe: ARS starts: {len(kept)} of {len(kept) + len(gone)} kept at {when} "
             f"(recent returns {', '.join(kept)}; dropped {', '.join(gone)})"
