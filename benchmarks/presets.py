@@ -261,7 +261,7 @@ def section(
             shown = Path(os.path.relpath(args.figure.resolve(), args.append.resolve().parent))
         facts.append(f"performance profile: ![performance profile]({shown.as_posix()})")
     head = section_head(title, PACKAGES, load_span(*loads), *facts)
-    return "\n".join(head + tables(presets, configs, runs))
+    return "\n".join(head + tables(presets, configs, runs, own=not args.override))
 
 
 def stopped(scheduler: Scheduler, stop: Stop, out: Path | None) -> NoReturn:

@@ -156,11 +156,14 @@ def budget(cfg: Config, runs: list[Run]) -> str:
     return shown if not ends or ends == [cfg.total_frames] * len(ends) else f"{shown} (ran {ran})"
 
 
-def summary_row(preset: Preset, cfg: Config, ours: Side, theirs: Side, where: str) -> list[str]:
-    """The preset's row of the main table."""
+def summary_row(
+    preset: Preset, cfg: Config, ours: Side, theirs: Side, where: str, own: bool = True
+) -> list[str]:
+    """The preset's row of the main table (``own``: of the preset as it is, not overridden)."""
     frames, seconds = ours.to_target()
     cells = [f"`{preset.experiment}`", preset.env, budget(cfg, ours.runs), f"{preset.target:g}"]
-    solved = ours.solved() + (" (short of 8/10: see its note)" if short(preset, ours) else "")
+    flag = " (short of 8/10: see its note)" if short(preset, ours, own) else ""
+    solved = ours.solved() + flag
     seeds = seed_text([r.seed for r in ours.runs]) + _shared(ours.runs)
     if not ours.runs:  # left out (--read-only), as the line above the table says: no 0/0
         solved, frames, seconds = "no record: left out", DASH, DASH
@@ -180,9 +183,11 @@ def summary_row(preset: Preset, cfg: Config, ours: Side, theirs: Side, where: st
     return [*cells, where]
 
 
-def short(preset: Preset, ours: Side) -> bool:
-    """Whether the row says it is short of 8 of 10 (its runs are, and its note says why)."""
-    return bool(preset.short_of) and ours.solved_count() < SOLVED_TARGET * len(ours.runs)
+def short(preset: Preset, ours: Side, own: bool = True) -> bool:
+    """Whether the row says it is short of 8 of 10: its runs are, and its note says why (the
+    preset's own runs, ``own``) or points to the preset's own row (runs overridden)."""
+    below = ours.solved_count() < SOLVED_TARGET * len(ours.runs)
+    return below and (bool(preset.short_of) or not own)
 
 
 def slow(preset: Preset, ours: Side, theirs: Side) -> bool:
@@ -289,10 +294,13 @@ def legend(runs: list[Run]) -> list[str]:
     ]
 
 
-def note(p: Preset, cfg: Config, ours: Side, theirs: Side, with_sb3: bool = True) -> str:
+def note(
+    p: Preset, cfg: Config, ours: Side, theirs: Side, with_sb3: bool = True, own: bool = True
+) -> str:
     """What the preset's row stands on: target and its source, tuning seeds, evals, SB3 (where
     ``with_sb3``: the section has SB3's side), where the row's runs stay short of 8 of 10 seeds
-    or of half SB3's time to the target, why, and a link to its section of the tuning log."""
+    or of half SB3's time to the target, why (where ``own``: of the preset as it is; a section
+    of overridden runs points to its own row), and a link to its section of the tuning log."""
     text = (
         f"- `{p.experiment}`: target {p.target:g} ({p.target_from}); random policy {p.floor:g}; "
         f"tuned on seeds {seed_text(p.tuned_on)}; a greedy eval of {cfg.eval_episodes} episodes "
@@ -304,7 +312,8 @@ def note(p: Preset, cfg: Config, ours: Side, theirs: Side, with_sb3: bool = True
         kwargs = ", ".join(f"{k}={v}" for k, v in {"n_envs": p.sb3_envs, **p.sb3}.items())
         normalize = ", VecNormalize(norm_obs=True, norm_reward=False)" if p.sb3_normalize else ""
         text += f"; SB3: {p.sb3_algo}('{p.sb3_policy}', {kwargs}{normalize})"
-    text += f"; **short of 8 of 10 held-out seeds**: {p.short_of}" if short(p, ours) else ""
+    why = p.short_of if own else OVERRIDDEN_SHORT
+    text += f"; **short of 8 of 10 held-out seeds**: {why}" if short(p, ours, own) else ""
     text += (
         f"; **time to the target above {SPEED_TARGET:g}× SB3's**: {p.slow}"
         if slow(p, ours, theirs)
@@ -313,6 +322,12 @@ def note(p: Preset, cfg: Config, ours: Side, theirs: Side, with_sb3: bool = True
     log = f"[{TUNING_LOG}]({TUNING_LOG}#{p.experiment})"
     return text + f"; what was tried, and seeds run as checks: {log}"
 
+
+# a short row's note in a section of overridden runs: the preset's own note speaks of its own runs
+OVERRIDDEN_SHORT = (
+    "these runs, with the section's override, are not the preset's own: its own held-out "
+    "runs, and what was tried, are in the tuned presets' table"
+)
 
 HEADERS = [
     "preset",
@@ -336,16 +351,19 @@ DETAIL_HEADERS += ["final", "wall min", "SB3 solved", "SB3 frames / s to target"
 DETAIL_HEADERS += ["SB3 final", "machine"]
 
 
-def tables(presets: list[Preset], configs: dict[str, Config], runs: list[Run]) -> list[str]:
+def tables(
+    presets: list[Preset], configs: dict[str, Config], runs: list[Run], own: bool = True
+) -> list[str]:
     """The main table, the aggregate line, the notes per preset, the per-seed table and the
-    machines' legend."""
+    machines' legend (``own``: of the presets as they are; not so for a section of runs with an
+    --override)."""
     label = machines(runs)
     ours_all, theirs_all = sides(presets, runs, "rlpipe"), sides(presets, runs, "SB3")
     rows, details = [], []
     for p, ours, theirs in zip(presets, ours_all, theirs_all):
         ran = [label[r.machine] for r in ours.runs + theirs.runs]
         where = ", ".join(dict.fromkeys(ran)) or DASH
-        rows.append(summary_row(p, configs[p.experiment], ours, theirs, where))
+        rows.append(summary_row(p, configs[p.experiment], ours, theirs, where, own))
         details += detail_rows(p, ours, theirs, label)
     measured = [s for s in theirs_all if s.runs]
     summary = (
@@ -355,7 +373,7 @@ def tables(presets: list[Preset], configs: dict[str, Config], runs: list[Run]) -
         + "."
     )
     notes = [
-        note(p, configs[p.experiment], *s, with_sb3=bool(measured))
+        note(p, configs[p.experiment], *s, with_sb3=bool(measured), own=own)
         for p, *s in zip(presets, ours_all, theirs_all)
     ]
     if any(r.shared_starts for r in runs):

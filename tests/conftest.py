@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib
 import os
 import shutil
 import subprocess
@@ -9,6 +10,7 @@ import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import pytest
@@ -212,3 +214,13 @@ def registry(monkeypatch, tmp_path):
     for name in set(sys.modules) - before:
         if str(getattr(sys.modules[name], "__file__", None)).startswith(folders):
             del sys.modules[name]
+
+
+@pytest.fixture(scope="module")
+def presets_bench() -> Iterator[SimpleNamespace]:
+    """benchmarks/presets.py's modules, imported: common, presets_runs, presets_table, report."""
+    with benchmarks_importable():
+        yield SimpleNamespace(
+            **{m: importlib.import_module(m) for m in ("common", "presets_runs", "presets_table")},
+            report=importlib.import_module("presets_report"),
+        )
