@@ -1,0 +1,131 @@
+"""How a trained run's greedy episodes end: in a fall, at the goal, or at the time limit.
+
+A preset's miss can come from a policy that falls now and then, one that walks too slowly to
+finish, or one that never gets going; the mean return alone does not tell them apart. Per trained
+run (its newest checkpoint, the run's env and backend, one evaluation seed), the episodes run as
+rlpipe's evaluation runs them (``min(episodes, 32)`` copies in lock-step, each its share of the
+episodes) and each is sorted by its end: a fall (terminated on a last reward of ``--fall-reward``
+or less: BipedalWalker's and LunarLander's -100), another termination (BipedalWalker: the end of
+the course), or the time limit (truncated). Results are saved in ``<run>/evaluation/ends-*.json``
+and read back, so a call with the same arguments continues.
+
+    python benchmarks/episode_ends.py RUN [RUN ...] [--episodes 100] [--append BENCHMARKS.md]
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import statistics
+from pathlib import Path
+
+import torch
+from common import load_span, publish_section, runs_parser, script, section_head, table
+from tensordict.nn import TensorDictModuleBase
+from torchrl.envs import EnvBase, ExplorationType, set_exploration_type
+
+from rlpipe.envs import make_env
+from rlpipe.episodes import eval_envs
+from rlpipe.files import write_atomic
+from rlpipe.pipeline import load_run
+
+RESULTS = "benchmarks/results/"  # left off the runs' names
+
+
+@torch.no_grad()
+def episode_ends(
+    policy: TensorDictModuleBase, env: EnvBase, episodes: int, fall_reward: float
+) -> list[dict]:
+    """Each episode's return, steps and end (``fall``, ``terminated`` or ``time limit``):
+    ``episodes`` greedy episodes on ``env``'s copies, copy ``i`` running ``episodes // n`` of
+    them, one more for the first ``episodes % n``."""
+    copies = env.batch_size.numel()
+    quota = [episodes // copies + (i < episodes % copies) for i in range(copies)]
+    done_eps, ends = [0] * copies, []
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        td = env.reset()
+        while any(d < q for d, q in zip(done_eps, quota)):
+            td, nxt = env.step_and_maybe_reset(policy(td))
+            step = td["next"]
+            ended = step["done"].reshape(copies).tolist()
+            for i in (i for i, e in enumerate(ended) if e and done_eps[i] < quota[i]):
+                done_eps[i] += 1
+                truncated = bool(step["truncated"].reshape(copies)[i])
+                fell = not truncated and float(step["reward"].reshape(copies)[i]) <= fall_reward
+                end = "time limit" if truncated else "fall" if fell else "terminated"
+                ret = float(step["episode_reward"].reshape(copies)[i])
+                steps = int(step["step_count"].reshape(copies)[i])
+                ends.append({"return": ret, "steps": steps, "end": end})
+            td = nxt
+    return ends
+
+
+def saved(run: Path, episodes: int, seed: int) -> Path:
+    """Where :func:`measure` keeps a run's episodes."""
+    return run / "evaluation" / f"ends-{episodes}-seed{seed}.json"
+
+
+def measure(run: Path, episodes: int, seed: int, fall_reward: float) -> dict:
+    """The run's episodes and their ends, read back from ``<run>/evaluation`` when saved."""
+    out = saved(run, episodes, seed)
+    if out.exists():
+        return json.loads(out.read_text())
+    loaded = load_run(run)
+    try:
+        env = make_env(loaded.cfg.env, num_envs=eval_envs(episodes), seed=seed)
+        try:
+            ends = episode_ends(loaded.algo.policy, env, episodes, fall_reward)
+        finally:
+            env.close()
+    finally:
+        loaded.algo.close()
+    figures = {"run": str(run), "fall_reward": fall_reward, "episodes": ends}
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_atomic(out, (json.dumps(figures, indent=2) + "\n").encode())
+    return figures
+
+
+def row(run: Path, figures: dict) -> list[str]:
+    """One table row: the mean, then each kind of end's count, mean return and steps."""
+    name = os.path.relpath(run.parent if run.name == "run" else run).removeprefix(RESULTS)
+    eps = figures["episodes"]
+    cells = [f"`{name}`", f"{statistics.fmean(e['return'] for e in eps):.1f}"]
+    for end in ("fall", "terminated", "time limit"):
+        these = [e for e in eps if e["end"] == end]
+        if not these:
+            cells += ["0", "–"]
+            continue
+        ret = statistics.fmean(e["return"] for e in these)
+        steps = sorted(e["steps"] for e in these)
+        span = f"{steps[0]:,}–{steps[-1]:,}" if steps[0] < steps[-1] else f"{steps[0]:,}"
+        cells += [str(len(these)), f"{ret:.1f} / {statistics.median(steps):,.0f} ({span})"]
+    return cells
+
+
+def main() -> None:
+    parser = runs_parser(__doc__.splitlines()[0])
+    parser.add_argument("--fall-reward", type=float, default=-100.0, help="a fall's last reward")
+    args = parser.parse_args()
+    start = os.getloadavg()
+    read_back = sum(saved(run, args.episodes, args.seed).exists() for run in args.runs)
+    rows = [
+        row(run, measure(run.resolve(), args.episodes, args.seed, args.fall_reward))
+        for run in args.runs
+    ]
+    headers = ["run", "mean return"]
+    for end in ("falls", "other terminations", "time limits"):
+        headers += [end, "their mean return / median steps (range)"]
+    head = section_head(
+        "How trained runs' greedy episodes end",
+        ["torch", "torchrl", "gymnasium", "envpool", "Box2D"],
+        f"{load_span(start, os.getloadavg())} of this call; {read_back} of {len(args.runs)} runs "
+        "read back from earlier calls (episodes, which the load does not change)",
+        f"each run's newest checkpoint, {args.episodes} greedy episodes on "
+        f"{eval_envs(args.episodes)} copies as rlpipe's evaluation runs them, evaluation seed "
+        f"{args.seed}; a fall: terminated on a last reward of {args.fall_reward:g} or less",
+    )
+    publish_section("\n".join([*head, table(headers, rows)]), args.append)
+
+
+if __name__ == "__main__":
+    script(main)
