@@ -70,6 +70,33 @@ def runs_parser(description: str) -> argparse.ArgumentParser:
     return p
 
 
+def run_rows(
+    runs: Sequence[Path],
+    saved: Callable[[Path], Path],
+    measure: Callable[[Path], dict],
+    row: Callable[[Path, dict], list[str]],
+    what: str,
+) -> tuple[list[list[str]], str]:
+    """A row per trained run from its figures (``measure``, or read back where ``saved(run)``
+    exists), and the section's load line, which says how many were read back: their ``what``,
+    which the load does not change."""
+    start = os.getloadavg()
+    read_back = sum(saved(run).exists() for run in runs)
+    rows = [row(run, measure(run.resolve())) for run in runs]
+    return rows, (
+        f"{load_span(start, os.getloadavg())} of this call; {read_back} of {len(runs)} runs read "
+        f"back from earlier calls ({what}, which the load does not change)"
+    )
+
+
+def run_name(run: Path) -> str:
+    """A run dir's name in a table: its path from here, less ``benchmarks/results/`` and a last
+    ``run`` folder (presets.py's layout, ``<preset>/seed<N>/run``)."""
+    return os.path.relpath(run.parent if run.name == "run" else run).removeprefix(
+        "benchmarks/results/"
+    )
+
+
 def evaluated(out: Path, *keys: str) -> dict:
     """The JSON summary of ``python -m rlpipe.evaluate <keys> out=<out>``, run only while ``out``
     is not there (a later call reads it back); a failure raises its command and stderr."""

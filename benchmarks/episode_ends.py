@@ -15,12 +15,11 @@ and read back, so a call with the same arguments continues.
 from __future__ import annotations
 
 import json
-import os
 import statistics
 from pathlib import Path
 
 import torch
-from common import load_span, publish_section, runs_parser, script, section_head, table
+from common import publish_section, run_name, run_rows, runs_parser, script, section_head, table
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase, ExplorationType, set_exploration_type
 
@@ -28,8 +27,6 @@ from rlpipe.envs import make_env
 from rlpipe.episodes import eval_envs
 from rlpipe.files import write_atomic
 from rlpipe.pipeline import load_run
-
-RESULTS = "benchmarks/results/"  # left off the runs' names
 
 
 @torch.no_grad()
@@ -87,9 +84,8 @@ def measure(run: Path, episodes: int, seed: int, fall_reward: float) -> dict:
 
 def row(run: Path, figures: dict) -> list[str]:
     """One table row: the mean, then each kind of end's count, mean return and steps."""
-    name = os.path.relpath(run.parent if run.name == "run" else run).removeprefix(RESULTS)
     eps = figures["episodes"]
-    cells = [f"`{name}`", f"{statistics.fmean(e['return'] for e in eps):.1f}"]
+    cells = [f"`{run_name(run)}`", f"{statistics.fmean(e['return'] for e in eps):.1f}"]
     for end in ("fall", "terminated", "time limit"):
         these = [e for e in eps if e["end"] == end]
         if not these:
@@ -106,20 +102,20 @@ def main() -> None:
     parser = runs_parser(__doc__.splitlines()[0])
     parser.add_argument("--fall-reward", type=float, default=-100.0, help="a fall's last reward")
     args = parser.parse_args()
-    start = os.getloadavg()
-    read_back = sum(saved(run, args.episodes, args.seed).exists() for run in args.runs)
-    rows = [
-        row(run, measure(run.resolve(), args.episodes, args.seed, args.fall_reward))
-        for run in args.runs
-    ]
+    rows, load = run_rows(
+        args.runs,
+        lambda run: saved(run, args.episodes, args.seed),
+        lambda run: measure(run, args.episodes, args.seed, args.fall_reward),
+        row,
+        "episodes",
+    )
     headers = ["run", "mean return"]
     for end in ("falls", "other terminations", "time limits"):
         headers += [end, "their mean return / median steps (range)"]
     head = section_head(
         "How trained runs' greedy episodes end",
         ["torch", "torchrl", "gymnasium", "envpool", "Box2D"],
-        f"{load_span(start, os.getloadavg())} of this call; {read_back} of {len(args.runs)} runs "
-        "read back from earlier calls (episodes, which the load does not change)",
+        load,
         f"each run's newest checkpoint, {args.episodes} greedy episodes on "
         f"{eval_envs(args.episodes)} copies as rlpipe's evaluation runs them, evaluation seed "
         f"{args.seed}; a fall: terminated on a last reward of {args.fall_reward:g} or less",

@@ -19,11 +19,10 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
 from pathlib import Path
 
 import torch
-from common import load_span, publish_section, runs_parser, script, section_head, table
+from common import publish_section, run_name, run_rows, runs_parser, script, section_head, table
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import ExplorationType, set_exploration_type
 
@@ -35,7 +34,6 @@ from rlpipe.pipeline import load_run
 
 EARLY = 200  # an episode that ends below 0 within this many steps fell at its start
 COPIES, ORDER, CAP = 16, 4, 300  # fresh copies, episodes each, steps an episode at most
-RESULTS = "benchmarks/results/"  # left off the runs' names
 
 
 def early_falls(result: EvalResult) -> int:
@@ -100,8 +98,7 @@ def measure(run: Path, episodes: int, seed: int) -> dict:
 
 def row(run: Path, figures: dict) -> list[str]:
     """One table row."""
-    name = os.path.relpath(run.parent if run.name == "run" else run).removeprefix(RESULTS)
-    cells = [f"`{name}`", figures["backend"]]
+    cells = [f"`{run_name(run)}`", figures["backend"]]
     for key in ("rlpipe", "consecutive"):
         cells += [f"{figures[key]['mean']:.1f}", str(figures[key]["early_falls"])]
     return [*cells, " / ".join(f"{n} of {COPIES}" for n in figures["falls_by_order"])]
@@ -109,9 +106,13 @@ def row(run: Path, figures: dict) -> list[str]:
 
 def main() -> None:
     args = runs_parser(__doc__.splitlines()[0]).parse_args()
-    start = os.getloadavg()
-    read_back = sum(saved(run, args.episodes, args.seed).exists() for run in args.runs)
-    rows = [row(run, measure(run.resolve(), args.episodes, args.seed)) for run in args.runs]
+    rows, load = run_rows(
+        args.runs,
+        lambda run: saved(run, args.episodes, args.seed),
+        lambda run: measure(run, args.episodes, args.seed),
+        row,
+        "returns",
+    )
     copies = eval_envs(args.episodes)
     headers = ["run", "backend", f"rlpipe's evaluation ({copies} copies) mean", "its early falls"]
     headers += ["consecutive on one env: mean", "its early falls"]
@@ -119,8 +120,7 @@ def main() -> None:
     head = section_head(
         "Returns by episode order after an env's creation",
         ["torch", "torchrl", "gymnasium", "envpool", "Box2D"],
-        f"{load_span(start, os.getloadavg())} of this call; {read_back} of {len(args.runs)} runs "
-        "read back from earlier calls (returns, which the load does not change)",
+        load,
         f"each run's newest checkpoint, {args.episodes} greedy episodes each way, evaluation seed "
         f"{args.seed}; early fall: an episode ending below 0 within {EARLY} steps; the fresh "
         f"copies' episodes capped at {CAP} steps",

@@ -5,21 +5,17 @@ figures saved and read back."""
 from __future__ import annotations
 
 import importlib
-import subprocess
-import sys
-from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
 import pytest
 from conftest import benchmarks_importable
+from trained_runs import ResetCounter, check_runs_script
 
 from rlpipe.config import EnvConfig
 from rlpipe.envs import make_env
 from rlpipe.episodes import EvalResult
 from rlpipe.evaluate import BASELINES
-
-BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 
 
 @pytest.fixture(scope="module")
@@ -28,20 +24,9 @@ def episode_order():
         yield importlib.import_module("episode_order")
 
 
-class ThirdFalls(gym.Env):
+class ThirdFalls(ResetCounter):
     """10 steps of reward 1 an episode, except after the env's third reset: one step of reward
     -100 (BipedalWalker's Box2D world after its third reset, caricatured)."""
-
-    observation_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
-    action_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
-
-    def __init__(self) -> None:
-        self.resets, self.t = 0, 0
-
-    def reset(self, *, seed=None, options=None):
-        super().reset(seed=seed)
-        self.resets, self.t = self.resets + 1, 0
-        return np.zeros(2, np.float32), {}
 
     def step(self, action):
         self.t += 1
@@ -70,15 +55,4 @@ def test_falls_by_order_finds_the_third_episode(episode_order):
 
 
 def test_episode_order_script_on_a_trained_run(run_copy, tmp_path):
-    command = [sys.executable, str(BENCHMARKS / "episode_order.py"), str(run_copy)]
-    command += ["--episodes", "3"]
-    out = tmp_path / "BENCH.md"
-    proc = subprocess.run([*command, "--append", str(out)], capture_output=True, text=True)
-    assert proc.returncode == 0, proc.stderr
-    rows = [line for line in out.read_text().splitlines() if line.startswith("| `")]
-    assert len(rows) == 1 and rows[0].count("|") == 8, out.read_text()
-    saved = run_copy / "evaluation" / "order-3-seed7.json"
-    stamp = saved.stat().st_mtime_ns
-    again = subprocess.run(command, capture_output=True, text=True)
-    assert again.returncode == 0 and rows[0] in again.stdout, again.stderr
-    assert saved.stat().st_mtime_ns == stamp
+    check_runs_script("episode_order.py", run_copy, "order-3-seed7.json", 7, tmp_path)
