@@ -19,7 +19,6 @@ from pathlib import Path
 from common import evaluated, load_span, publish_section, script, section_head, table
 
 from rlpipe.episodes import eval_envs
-from rlpipe.errors import RlpipeError
 
 STEPS = 1600  # BipedalWalker-v3's time limit: an episode that ends sooner fell
 NAMES = {
@@ -66,14 +65,11 @@ def main() -> None:
     args = p.parse_args()
     start = os.getloadavg()
     rows, read_back = [], 0
-    try:
-        for policy in args.policies:
-            for copies in (eval_envs(args.episodes), 1):
-                s, old = summary(policy, copies, args)
-                rows.append(row(policy, copies, s))
-                read_back += old
-    except RlpipeError as error:
-        sys.exit(f"baselines: {error}")
+    for policy in args.policies:
+        for copies in (eval_envs(args.episodes), 1):
+            s, old = summary(policy, copies, args)
+            rows.append(row(policy, copies, s))
+            read_back += old
     headers = ["policy", "episodes on", "return mean ± std", "min", "max", "episodes above 0"]
     headers += [f"falls (ended before {STEPS:,} steps)", "mean length"]
     head = section_head(

@@ -25,15 +25,19 @@ from rlpipe.cli import compose_run
 from rlpipe.console import console_may_close
 from rlpipe.envs import make_env
 from rlpipe.episodes import evaluate
-from rlpipe.errors import check
+from rlpipe.errors import RlpipeError, check
 from rlpipe.runtime import seed_everything
 
 
 def script(main: Callable[[], None]) -> None:
     """Run a benchmark script's ``main``: a console that closes under it (``| head``) ends
-    nothing, so its table still reaches ``--append``."""
-    with console_may_close():
-        main()
+    nothing, so its table still reaches ``--append``; an error of rlpipe's (a run dir that is not
+    there, a bad argument) ends it in one line, ``<script>: <what is wrong>``, and exit status 1."""
+    try:
+        with console_may_close():
+            main()
+    except RlpipeError as error:
+        sys.exit(f"{Path(sys.argv[0]).stem}: {error}")
 
 
 @contextmanager

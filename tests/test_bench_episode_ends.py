@@ -5,12 +5,14 @@ run: one table row, its episodes saved and read back."""
 from __future__ import annotations
 
 import importlib
+import subprocess
+import sys
 
 import gymnasium as gym
 import numpy as np
 import pytest
 from conftest import benchmarks_importable
-from trained_runs import ResetCounter, check_runs_script
+from trained_runs import BENCHMARKS, ResetCounter, check_runs_script
 
 from rlpipe.config import EnvConfig
 from rlpipe.envs import make_env
@@ -52,3 +54,14 @@ def test_each_episode_is_sorted_by_its_end(episode_ends):
 
 def test_episode_ends_script_on_a_trained_run(run_copy, tmp_path):
     check_runs_script("episode_ends.py", run_copy, "ends-3-seed7.json", 8, tmp_path)
+
+
+def test_a_run_dir_that_is_not_there_is_one_line(tmp_path):
+    missing = tmp_path / "no-such-run"
+    proc = subprocess.run(
+        [sys.executable, str(BENCHMARKS / "episode_ends.py"), str(missing)],
+        capture_output=True,
+        text=True,
+    )
+    assert proc.returncode == 1, proc.stderr
+    assert proc.stderr.strip() == f"episode_ends: run directory {missing} does not exist"
