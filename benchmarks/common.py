@@ -20,6 +20,10 @@ from functools import partial
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
+import torch
+from tensordict.nn import TensorDictModuleBase
+from torchrl.envs import EnvBase, ExplorationType, set_exploration_type
+
 from rlpipe.algos import make_algorithm
 from rlpipe.cli import compose_run
 from rlpipe.console import console_may_close
@@ -91,6 +95,37 @@ def run_rows(
         f"{load_span(start, os.getloadavg())} of this call; {read_back} of {len(runs)} runs read "
         f"back from earlier calls ({what}, which the load does not change)"
     )
+
+
+@torch.no_grad()
+def greedy_episodes(policy: TensorDictModuleBase, env: EnvBase, quota: list[int]) -> list[dict]:
+    """Greedy episodes of ``policy`` on ``env``'s copies in lock-step, copy ``i`` running
+    ``quota[i]`` of them: each episode's copy, order on that copy (0, 1, ...), return, steps,
+    whether it was truncated, and its last reward."""
+    copies, done_eps, episodes = env.batch_size.numel(), [0] * len(quota), []
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        td = env.reset()
+        while any(d < q for d, q in zip(done_eps, quota)):
+            td, nxt = env.step_and_maybe_reset(policy(td))
+            step = td["next"]
+            ended = step["done"].reshape(copies).tolist()
+            if any(ended):
+                keys = ("episode_reward", "step_count", "truncated", "reward")
+                ret, steps, truncated, last = (step[k].reshape(copies).tolist() for k in keys)
+            for i in (i for i, e in enumerate(ended) if e and done_eps[i] < quota[i]):
+                episodes.append(
+                    {
+                        "copy": i,
+                        "order": done_eps[i],
+                        "return": float(ret[i]),
+                        "steps": int(steps[i]),
+                        "truncated": bool(truncated[i]),
+                        "last_reward": float(last[i]),
+                    }
+                )
+                done_eps[i] += 1
+            td = nxt
+    return episodes
 
 
 def run_name(run: Path) -> str:

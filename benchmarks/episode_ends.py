@@ -18,10 +18,18 @@ import json
 import statistics
 from pathlib import Path
 
-import torch
-from common import publish_section, run_name, run_rows, runs_parser, script, section_head, table
+from common import (
+    greedy_episodes,
+    publish_section,
+    run_name,
+    run_rows,
+    runs_parser,
+    script,
+    section_head,
+    table,
+)
 from tensordict.nn import TensorDictModuleBase
-from torchrl.envs import EnvBase, ExplorationType, set_exploration_type
+from torchrl.envs import EnvBase
 
 from rlpipe.envs import make_env
 from rlpipe.episodes import eval_envs
@@ -29,7 +37,6 @@ from rlpipe.files import write_atomic
 from rlpipe.pipeline import load_run
 
 
-@torch.no_grad()
 def episode_ends(
     policy: TensorDictModuleBase, env: EnvBase, episodes: int, fall_reward: float
 ) -> list[dict]:
@@ -38,22 +45,11 @@ def episode_ends(
     them, one more for the first ``episodes % n``."""
     copies = env.batch_size.numel()
     quota = [episodes // copies + (i < episodes % copies) for i in range(copies)]
-    done_eps, ends = [0] * copies, []
-    with set_exploration_type(ExplorationType.DETERMINISTIC):
-        td = env.reset()
-        while any(d < q for d, q in zip(done_eps, quota)):
-            td, nxt = env.step_and_maybe_reset(policy(td))
-            step = td["next"]
-            ended = step["done"].reshape(copies).tolist()
-            for i in (i for i, e in enumerate(ended) if e and done_eps[i] < quota[i]):
-                done_eps[i] += 1
-                truncated = bool(step["truncated"].reshape(copies)[i])
-                fell = not truncated and float(step["reward"].reshape(copies)[i]) <= fall_reward
-                end = "time limit" if truncated else "fall" if fell else "terminated"
-                ret = float(step["episode_reward"].reshape(copies)[i])
-                steps = int(step["step_count"].reshape(copies)[i])
-                ends.append({"return": ret, "steps": steps, "end": end})
-            td = nxt
+    ends = []
+    for episode in greedy_episodes(policy, env, quota):
+        fell = not episode["truncated"] and episode["last_reward"] <= fall_reward
+        end = "time limit" if episode["truncated"] else "fall" if fell else "terminated"
+        ends.append({"return": episode["return"], "steps": episode["steps"], "end": end})
     return ends
 
 

@@ -21,10 +21,17 @@ import dataclasses
 import json
 from pathlib import Path
 
-import torch
-from common import publish_section, run_name, run_rows, runs_parser, script, section_head, table
+from common import (
+    greedy_episodes,
+    publish_section,
+    run_name,
+    run_rows,
+    runs_parser,
+    script,
+    section_head,
+    table,
+)
 from tensordict.nn import TensorDictModuleBase
-from torchrl.envs import ExplorationType, set_exploration_type
 
 from rlpipe.config import EnvConfig
 from rlpipe.envs import make_env
@@ -41,28 +48,18 @@ def early_falls(result: EvalResult) -> int:
     return sum(r < 0 and n <= EARLY for r, n in zip(result.returns, result.lengths))
 
 
-@torch.no_grad()
 def falls_by_order(policy: TensorDictModuleBase, env_cfg: EnvConfig, seed: int) -> list[int]:
     """Early falls among the 1st, 2nd, ... :data:`ORDER`-th episodes of :data:`COPIES` fresh
     copies stepped in lock-step (episodes capped at :data:`CAP` steps)."""
     env = make_env(dataclasses.replace(env_cfg, max_episode_steps=CAP), num_envs=COPIES, seed=seed)
-    counts, done_eps = [0] * ORDER, torch.zeros(COPIES, dtype=torch.long)
     try:
-        with set_exploration_type(ExplorationType.DETERMINISTIC):
-            td = env.reset()
-            while bool((done_eps < ORDER).any()):
-                td, nxt = env.step_and_maybe_reset(policy(td))
-                ended = td["next", "done"].reshape(COPIES)
-                returns = td["next", "episode_reward"].reshape(COPIES)
-                steps = td["next", "step_count"].reshape(COPIES)
-                for i in ended.nonzero().flatten().tolist():
-                    k = int(done_eps[i])
-                    if k < ORDER and returns[i] < 0 and steps[i] <= EARLY:
-                        counts[k] += 1
-                    done_eps[i] += 1
-                td = nxt
+        episodes = greedy_episodes(policy, env, [ORDER] * COPIES)
     finally:
         env.close()
+    counts = [0] * ORDER
+    for episode in episodes:
+        if episode["return"] < 0 and episode["steps"] <= EARLY:
+            counts[episode["order"]] += 1
     return counts
 
 
