@@ -298,6 +298,10 @@ def test_config_checks():
             ARSConfig(**bad)
     with pytest.raises(RlpipeError, match=r"algo.reward_clip_from must be in \[0, 1\)"):
         ARSConfig(reward_clip_from=1)
+    with pytest.raises(RlpipeError, match=r"^algo.episodes_from must be in \[0, 1\), got -0.5"):
+        ARSConfig(episodes_from=-0.5)
+    with pytest.raises(RlpipeError, match="^algo.episodes must be >= 1, got 0"):
+        ARSConfig(episodes=0)
     # true: the notebook's [-1, 1]; a number: that bound; false: no clip
     bounds = [ARSConfig(reward_clip=v).reward_bound for v in (True, 10, 2.5, False)]
     assert bounds == [1.0, 10.0, 2.5, None]

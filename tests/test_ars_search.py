@@ -1,12 +1,12 @@
 """ARS's search and rollouts outside the runner: solving CartPole alone, the state dict that
 resumes it exactly, episode ends at the env's time limit, reward clipping, the penalty on
-outputs past the bounds, results as arrays."""
+outputs past the bounds, several episodes a member, results as arrays."""
 
 from __future__ import annotations
 
 import io
 import pickle
-from dataclasses import fields
+from dataclasses import fields, replace
 from functools import partial
 
 import gymnasium as gym
@@ -17,7 +17,7 @@ from test_ars import CARTPOLE, PENDULUM
 from torch import nn
 from torch.nn.utils import parameters_to_vector
 
-from rlpipe.algos import ARSConfig
+from rlpipe.algos import ARS, ARSConfig
 from rlpipe.algos.ars import ARSSearch, ars_update, centered_ranks, make_ars_policy
 from rlpipe.algos.ars.rollout import rollout
 from rlpipe.envs import make_env
@@ -132,6 +132,43 @@ def test_ranks_fitness_updates_on_the_centered_ranks_of_the_returns():
     torch.testing.assert_close(search.theta, ars_update(theta, deltas, plus, minus, 2, 0.05))
     with pytest.raises(RlpipeError, match="^fitness must be one of returns, ranks; got 'rank'"):
         small_search(3, fitness="rank")
+
+
+def test_episodes_average_each_members_training_returns_over_fresh_seeds():
+    """episodes=2: each of the 2N members runs two episodes (seeds drawn after the directions,
+    shared by θ+νδ and θ-νδ in each round), θ moves by the ARS rule on the two rounds' mean
+    returns, and the normaliser takes in the observations of both."""
+    search = small_search(5, episodes=2, num_best=2, step_size=0.05)
+    theta, state = search.theta, search.generator.get_state()
+    try:
+        stats = search.step()
+    finally:
+        search.close()
+    generator = torch.Generator().set_state(state)
+    deltas = torch.randn(3, theta.numel(), generator=generator)
+    seeds = torch.randint(2**31 - 1, (2, 3), generator=generator)
+    assert len(set(seeds.flatten().tolist())) == 6
+    returns = torch.tensor(stats["episode_return"], dtype=torch.float64).reshape(2, 6)
+    assert not torch.equal(returns[0], returns[1])  # two rounds, other episodes
+    plus, minus = returns.mean(0).float().chunk(2)
+    torch.testing.assert_close(search.theta, ars_update(theta, deltas, plus, minus, 2, 0.05))
+    assert stats["env_steps"] == sum(stats["episode_length"]) == float(search.normalizer.count)
+    with pytest.raises(RlpipeError, match="^episodes must be >= 1, got 0"):
+        small_search(5, episodes=0)
+
+
+def test_episodes_apply_from_their_fraction_of_the_run():
+    """algo.episodes from the first algo.episodes_from of the run on, one episode before."""
+    torch.manual_seed(0)
+    cfg = ARSConfig(num_directions=2, num_best=1, workers=1, iterations=4)
+    algo, seen = ARS(partial(make_env, CARTPOLE), replace(cfg, episodes=3, episodes_from=0.5)), []
+    try:
+        for _ in range(4):
+            stats = algo.train_step()
+            seen.append((algo.search.episodes, len(stats["train/episode_return"])))
+    finally:
+        algo.close()
+    assert seen == [(1, 4), (1, 4), (3, 12), (3, 12)]
 
 
 def test_bound_penalty_is_checked():

@@ -26,6 +26,7 @@ SEARCH_PARAMS = (
     "step_size",
     "noise",
     "bound_penalty",
+    "episodes",
     "fitness",
     "workers",
     "backend",
@@ -106,14 +107,12 @@ class DQNConfig(OffPolicyConfig):
     # exp: eps_end + (eps_start - eps_end) * exp(-t / eps_decay); linear: annealed over eps_decay
     eps_schedule: str = checked("exp", choices=EPS_SCHEDULES)
     eps_decay: int = checked(1000, "at_least_one")  # frames
-    # εz-greedy: each random action held for n steps, P(n) ∝ n^-eps_zeta (e.g. 2; > 1);
-    # null: one step (ε-greedy)
+    # εz-greedy: each random action held for n steps, P(n) ∝ n^-eps_zeta (e.g. 2); null: ε-greedy
     eps_zeta: float | None = None
     # the most any return can be (e.g. CartPole's 1/(1-γ) = 100 at γ 0.99): each TD target is
     # clamped to it, so Q-values cannot climb past it; null: unbounded
     q_max: float | None = None
-    # env frames collected per iteration (across all envs), then as many gradient steps: one
-    # per frame, as the notebook
+    # frames collected per iteration (all env copies), then as many gradient steps (the notebook)
     frames_per_batch: int = checked(4, "at_least_one")
     updates_per_batch: int = checked(4, "non_negative")
     learning_starts: int = checked(128, "non_negative")  # frames collected before the first update
@@ -235,7 +234,7 @@ def check_search_params(params: Any, prefix: str) -> None:
     check_fields(
         params,
         prefix,
-        at_least_one=("num_directions",),
+        at_least_one=("num_directions", "episodes"),
         positive=("step_size", "noise"),
         non_negative=("workers", "bound_penalty"),
     )
@@ -294,6 +293,9 @@ class ARSConfig(AlgoConfig):
     # returns replaced by its centred rank in [-0.5, 0.5], as OpenAI's ES does: a rollout that
     # falls ranks last, but no longer outweighs the other directions by the reward it lost)
     fitness: str = "returns"
+    # episodes a perturbed policy runs per iteration, returns averaged (one before episodes_from)
+    episodes: int = 1
+    episodes_from: float = checked(0.0, "fraction")
     # several starts searched in turn, the worse half dropped at each of ceil(log2(starts))
     # rungs, one left after the first starts_until of the run (rlpipe/algos/ars/starts.py)
     starts: int = checked(1, "at_least_one")
@@ -376,9 +378,8 @@ class MBRLConfig(AlgoConfig):
     validation_fraction: float = checked(0.1, "fraction")
     buffer_size: int = checked(100_000, "at_least_one")
     # loop
-    warmup_frames: int = checked(
-        400, "non_negative"
-    )  # uniformly random actions before the first fit
+    # uniformly random actions before the first fit
+    warmup_frames: int = checked(400, "non_negative")
     frames_per_batch: int = checked(200, "at_least_one")  # env frames collected between two fits
     # planner
     planner: str = checked("cem", choices=PLANNERS)  # cem | random (random shooting)

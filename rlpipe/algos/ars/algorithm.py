@@ -114,6 +114,7 @@ class ARS(Algorithm):
         done, total, _ = self._progress()
         self.search.step_size = annealed(cfg.step_size, cfg.step_size_end, done, total)
         self.search.noise = annealed(cfg.noise, cfg.noise_end, done, total)
+        self.search.episodes = cfg.episodes if done >= cfg.episodes_from * total else 1
         if cfg.reward_bound is not None:  # the clip's bound moves after its first part
             begin = cfg.reward_clip_from * total
             self.search.reward_clip = annealed(

@@ -25,10 +25,11 @@ class ARSSearch:
     """Augmented random search on ``policy``'s flat parameters θ, one :meth:`step` per iteration.
 
     Each iteration samples ``num_directions`` (N) Gaussian directions δ, rolls out the ``2N``
-    policies θ ± ν·δ (ν: ``noise``) for one episode each, keeps the ``num_best`` (b) directions
-    with the best ``max(r+, r-)`` and moves θ by ``α / (b·σ) · Σ (r+ - r-)·δ`` (α:
-    ``step_size``, σ: the std of the ``2b`` kept returns; :func:`ars_update`). θ is
-    ``parameters_to_vector(policy.parameters())``, read and set through :attr:`theta`.
+    policies θ ± ν·δ (ν: ``noise``) for ``episodes`` episodes each (their returns averaged),
+    keeps the ``num_best`` (b) directions with the best ``max(r+, r-)`` and moves θ by
+    ``α / (b·σ) · Σ (r+ - r-)·δ`` (α: ``step_size``, σ: the std of the ``2b`` kept returns;
+    :func:`ars_update`). θ is ``parameters_to_vector(policy.parameters())``, read and set
+    through :attr:`theta`.
 
     Args:
         policy: a CPU ``TensorDictModule``, or a ``TensorDictSequential`` of them with one
@@ -61,6 +62,10 @@ class ARSSearch:
             that output clamped into the action bounds, so that the search keeps away from
             outputs far past the bounds (a bang-bang policy that a perturbation hardly
             changes). Continuous actions only. Default 0.0: none.
+        episodes: episodes each perturbed policy runs per iteration (at least 1, the default),
+            from as many episode seeds per direction (θ+νδ and θ-νδ sharing each); their
+            training returns are averaged before ranking and weighing, so that one episode's
+            luck (a fall on one terrain) weighs less. An attribute, read by every :meth:`step`.
         fitness: ``"returns"`` (the default: the ARS paper's update on the training returns)
             or ``"ranks"``: the ``2N`` training returns replaced by their centred ranks
             (:func:`centered_ranks`) before the top-b selection and the update, so that one
@@ -129,6 +134,7 @@ class ARSSearch:
         reward_offset: float = 0.0,
         reward_clip: float | None = None,
         bound_penalty: float = 0.0,
+        episodes: int = 1,
         fitness: str = "returns",
         normalizer: Normalizer | None = None,
         workers: int = 1,
@@ -141,7 +147,7 @@ class ARSSearch:
         self.num_best = num_directions if num_best is None else num_best
         self.step_size, self.noise, self.reward_clip = step_size, noise, reward_clip
         self.max_steps, self.workers, self.backend = max_steps, workers, backend
-        self.bound_penalty, self.fitness = bound_penalty, fitness
+        self.bound_penalty, self.fitness, self.episodes = bound_penalty, fitness, episodes
         check_search_params(self, "")
         check_fields(self, "", at_least_one=("max_steps",))
         check(
@@ -195,8 +201,8 @@ class ARSSearch:
         - ``"env_steps"``: env steps taken by the ``2N`` rollouts (a float);
         - ``"steps_per_second"``: ``env_steps`` over this call's wall-clock seconds;
         - ``"rollout_cpu_seconds"``: CPU seconds of the rollouts, summed over all processes;
-        - ``"episode_return"``, ``"episode_length"``: lists of ``2N`` floats, one per rollout:
-          θ+νδ for the N directions, then θ-νδ in the same order.
+        - ``"episode_return"``, ``"episode_length"``: lists of ``2N`` floats per episode round,
+          one per rollout: θ+νδ for the N directions, then θ-νδ in the same order.
         """
         self.start()
         start = time.perf_counter()
@@ -206,14 +212,20 @@ class ARSSearch:
         # each direction's episode seed comes from the search's generator (the same results
         # whichever worker runs it); θ+νδ and θ-νδ start from the same state, so r+ - r- measures
         # the direction, not the luck of two starts
-        seeds = torch.randint(2**31 - 1, (self.num_directions,), generator=self.generator)
-        seeds = seeds.repeat(2)
-        shares = self._backend.roll_out(flat, seeds, self.reward_clip)
-        returns, raw, lengths = (torch.empty(len(flat), dtype=torch.float64) for _ in range(3))
-        for members, result in shares:
-            returns[members] = result.returns
-            raw[members] = result.raw_returns
-            lengths[members] = result.lengths.double()
+        seeds = torch.randint(
+            2**31 - 1, (self.episodes, self.num_directions), generator=self.generator
+        )
+        shares = []  # every round's, merged into the normaliser after the last
+        # per round: training returns, env returns and lengths of the 2N members
+        figures = torch.empty(len(seeds), 3, len(flat), dtype=torch.float64)
+        for round_figures, round_seeds in zip(figures, seeds, strict=True):
+            round_shares = self._backend.roll_out(flat, round_seeds.repeat(2), self.reward_clip)
+            for members, result in round_shares:
+                round_figures[0, members] = result.returns
+                round_figures[1, members] = result.raw_returns
+                round_figures[2, members] = result.lengths.double()
+            shares += round_shares
+        returns, raw, lengths = figures[:, 0].mean(0), figures[:, 1], figures[:, 2]
         weights = centered_ranks(returns) if self.fitness == "ranks" else returns
         plus, minus = weights.float().chunk(2)
         self.theta = ars_update(theta, deltas, plus, minus, self.num_best, self.step_size)
@@ -228,8 +240,8 @@ class ARSSearch:
             "env_steps": float(steps),
             "steps_per_second": steps / (time.perf_counter() - start),
             "rollout_cpu_seconds": sum(result.cpu_seconds for _, result in shares),
-            "episode_return": raw.tolist(),  # one per perturbed rollout
-            "episode_length": lengths.tolist(),
+            "episode_return": raw.flatten().tolist(),  # one per perturbed rollout
+            "episode_length": lengths.flatten().tolist(),
         }
 
     def state_dict(self) -> dict[str, Any]:
