@@ -370,6 +370,8 @@ BAD = [
     (["algo.bound_penalty=-0.1"], "algo.bound_penalty must be a finite number >= 0, got -0.1"),
     (["algo.starts_until=1"], "algo.starts_until must be in (0, 1)"),
     (["algo.fitness=rank"], "algo.fitness must be one of returns, ranks; got 'rank'"),
+    (["algo.episodes=0"], "algo.episodes must be >= 1, got 0"),
+    (["algo.episodes_from=1.5"], "algo.episodes_from must be in [0, 1), got 1.5"),
     (
         ["algo.reward_clip=false", "algo.reward_clip_end=10"],
         "algo.reward_clip_end must be null, or a number > 0 with algo.reward_clip true or a number",
