@@ -197,8 +197,9 @@ class ARSSearch:
         Returns the iteration's figures (returns are the env's own, without ``reward_offset``
         or ``reward_clip``):
 
-        - ``"return_mean"``, ``"return_max"``: mean and max return of the ``2N`` rollouts;
-        - ``"env_steps"``: env steps taken by the ``2N`` rollouts (a float);
+        - ``"return_mean"``, ``"return_max"``: mean and max return of the iteration's rollouts
+          (``2N`` a round of episodes);
+        - ``"env_steps"``: env steps taken by those rollouts (a float);
         - ``"steps_per_second"``: ``env_steps`` over this call's wall-clock seconds;
         - ``"rollout_cpu_seconds"``: CPU seconds of the rollouts, summed over all processes;
         - ``"episode_return"``, ``"episode_length"``: lists of ``2N`` floats per episode round,
