@@ -19,6 +19,7 @@ from datetime import date
 from functools import partial
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
+from typing import Any
 
 import torch
 from tensordict.nn import TensorDictModuleBase
@@ -30,6 +31,8 @@ from rlpipe.console import console_may_close
 from rlpipe.envs import make_env
 from rlpipe.episodes import evaluate
 from rlpipe.errors import RlpipeError, check
+from rlpipe.files import write_atomic
+from rlpipe.pipeline import load_run
 from rlpipe.runtime import seed_everything
 
 
@@ -78,19 +81,34 @@ def runs_parser(description: str) -> argparse.ArgumentParser:
     return p
 
 
+def run_figures(run: Path, kept: str, compute: Callable[[Path, Any], dict]) -> dict:
+    """A trained run's figures: read back from ``<run>/evaluation/<kept>`` where an earlier call
+    kept them, else ``compute(run, loaded)`` on the loaded run (closed after) and kept there."""
+    out = run / "evaluation" / kept
+    if out.exists():
+        return json.loads(out.read_text())
+    loaded = load_run(run)
+    try:
+        figures = compute(run, loaded)
+    finally:
+        loaded.algo.close()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_atomic(out, (json.dumps(figures, indent=2) + "\n").encode())
+    return figures
+
+
 def run_rows(
     runs: Sequence[Path],
-    saved: Callable[[Path], Path],
-    measure: Callable[[Path], dict],
+    kept: str,
+    compute: Callable[[Path, Any], dict],
     row: Callable[[Path, dict], list[str]],
     what: str,
 ) -> tuple[list[list[str]], str]:
-    """A row per trained run from its figures (``measure``, or read back where ``saved(run)``
-    exists), and the section's load line, which says how many were read back: their ``what``,
-    which the load does not change."""
+    """A row per trained run from its figures (:func:`run_figures`), and the section's load
+    line, which says how many were read back: their ``what``, which the load does not change."""
     start = os.getloadavg()
-    read_back = sum(saved(run).exists() for run in runs)
-    rows = [row(run, measure(run.resolve())) for run in runs]
+    read_back = sum((run / "evaluation" / kept).exists() for run in runs)
+    rows = [row(run, run_figures(run.resolve(), kept, compute)) for run in runs]
     return rows, (
         f"{load_span(start, os.getloadavg())} of this call; {read_back} of {len(runs)} runs read "
         f"back from earlier calls ({what}, which the load does not change)"

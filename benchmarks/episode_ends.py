@@ -14,9 +14,9 @@ and read back, so a call with the same arguments continues.
 
 from __future__ import annotations
 
-import json
 import statistics
 from pathlib import Path
+from typing import Any
 
 from common import (
     greedy_episodes,
@@ -33,8 +33,6 @@ from torchrl.envs import EnvBase
 
 from rlpipe.envs import make_env
 from rlpipe.episodes import eval_envs
-from rlpipe.files import write_atomic
-from rlpipe.pipeline import load_run
 
 
 def episode_ends(
@@ -53,29 +51,14 @@ def episode_ends(
     return ends
 
 
-def saved(run: Path, episodes: int, seed: int) -> Path:
-    """Where :func:`measure` keeps a run's episodes."""
-    return run / "evaluation" / f"ends-{episodes}-seed{seed}.json"
-
-
-def measure(run: Path, episodes: int, seed: int, fall_reward: float) -> dict:
-    """The run's episodes and their ends, read back from ``<run>/evaluation`` when saved."""
-    out = saved(run, episodes, seed)
-    if out.exists():
-        return json.loads(out.read_text())
-    loaded = load_run(run)
+def measure(run: Path, loaded: Any, episodes: int, seed: int, fall_reward: float) -> dict:
+    """A loaded run's episodes and their ends."""
+    env = make_env(loaded.cfg.env, num_envs=eval_envs(episodes), seed=seed)
     try:
-        env = make_env(loaded.cfg.env, num_envs=eval_envs(episodes), seed=seed)
-        try:
-            ends = episode_ends(loaded.algo.policy, env, episodes, fall_reward)
-        finally:
-            env.close()
+        ends = episode_ends(loaded.algo.policy, env, episodes, fall_reward)
     finally:
-        loaded.algo.close()
-    figures = {"run": str(run), "fall_reward": fall_reward, "episodes": ends}
-    out.parent.mkdir(parents=True, exist_ok=True)
-    write_atomic(out, (json.dumps(figures, indent=2) + "\n").encode())
-    return figures
+        env.close()
+    return {"run": str(run), "fall_reward": fall_reward, "episodes": ends}
 
 
 def row(run: Path, figures: dict) -> list[str]:
@@ -100,8 +83,8 @@ def main() -> None:
     args = parser.parse_args()
     rows, load = run_rows(
         args.runs,
-        lambda run: saved(run, args.episodes, args.seed),
-        lambda run: measure(run, args.episodes, args.seed, args.fall_reward),
+        f"ends-{args.episodes}-seed{args.seed}.json",
+        lambda run, loaded: measure(run, loaded, args.episodes, args.seed, args.fall_reward),
         row,
         "episodes",
     )

@@ -18,8 +18,8 @@ back, so a call with the same arguments continues.
 from __future__ import annotations
 
 import dataclasses
-import json
 from pathlib import Path
+from typing import Any
 
 from common import (
     greedy_episodes,
@@ -36,8 +36,6 @@ from tensordict.nn import TensorDictModuleBase
 from rlpipe.config import EnvConfig
 from rlpipe.envs import make_env
 from rlpipe.episodes import EvalResult, eval_envs, evaluate
-from rlpipe.files import write_atomic
-from rlpipe.pipeline import load_run
 
 EARLY = 200  # an episode that ends below 0 within this many steps fell at its start
 COPIES, ORDER, CAP = 16, 4, 300  # fresh copies, episodes each, steps an episode at most
@@ -63,33 +61,19 @@ def falls_by_order(policy: TensorDictModuleBase, env_cfg: EnvConfig, seed: int) 
     return counts
 
 
-def saved(run: Path, episodes: int, seed: int) -> Path:
-    """Where :func:`measure` keeps a run's figures."""
-    return run / "evaluation" / f"order-{episodes}-seed{seed}.json"
-
-
-def measure(run: Path, episodes: int, seed: int) -> dict:
-    """The run's three measurements, read back from ``<run>/evaluation`` when saved."""
-    out = saved(run, episodes, seed)
-    if out.exists():
-        return json.loads(out.read_text())
-    loaded = load_run(run)
-    try:
-        policy, env_cfg = loaded.algo.policy, loaded.cfg.env
-        lockstep = eval_envs(episodes)
-        figures = {"run": str(run), "backend": env_cfg.backend, "lockstep_copies": lockstep}
-        for name, copies in (("rlpipe", lockstep), ("consecutive", 1)):
-            env = make_env(env_cfg, num_envs=copies, seed=seed)
-            try:
-                result = evaluate(policy, env, episodes)
-            finally:
-                env.close()
-            figures[name] = {"mean": result.mean, "early_falls": early_falls(result)}
-        figures["falls_by_order"] = falls_by_order(policy, env_cfg, seed)
-    finally:
-        loaded.algo.close()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    write_atomic(out, (json.dumps(figures, indent=2) + "\n").encode())
+def measure(run: Path, loaded: Any, episodes: int, seed: int) -> dict:
+    """A loaded run's three measurements."""
+    policy, env_cfg = loaded.algo.policy, loaded.cfg.env
+    lockstep = eval_envs(episodes)
+    figures = {"run": str(run), "backend": env_cfg.backend, "lockstep_copies": lockstep}
+    for name, copies in (("rlpipe", lockstep), ("consecutive", 1)):
+        env = make_env(env_cfg, num_envs=copies, seed=seed)
+        try:
+            result = evaluate(policy, env, episodes)
+        finally:
+            env.close()
+        figures[name] = {"mean": result.mean, "early_falls": early_falls(result)}
+    figures["falls_by_order"] = falls_by_order(policy, env_cfg, seed)
     return figures
 
 
@@ -105,8 +89,8 @@ def main() -> None:
     args = runs_parser(__doc__.splitlines()[0]).parse_args()
     rows, load = run_rows(
         args.runs,
-        lambda run: saved(run, args.episodes, args.seed),
-        lambda run: measure(run, args.episodes, args.seed),
+        f"order-{args.episodes}-seed{args.seed}.json",
+        lambda run, loaded: measure(run, loaded, args.episodes, args.seed),
         row,
         "returns",
     )
