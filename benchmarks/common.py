@@ -19,7 +19,6 @@ from datetime import date
 from functools import partial
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
-from typing import Any
 
 import torch
 from tensordict.nn import TensorDictModuleBase
@@ -32,7 +31,7 @@ from rlpipe.envs import make_env
 from rlpipe.episodes import evaluate
 from rlpipe.errors import RlpipeError, check
 from rlpipe.files import write_atomic
-from rlpipe.pipeline import load_run
+from rlpipe.pipeline import LoadedRun, load_run
 from rlpipe.runtime import seed_everything
 
 
@@ -81,10 +80,15 @@ def runs_parser(description: str) -> argparse.ArgumentParser:
     return p
 
 
-def run_figures(run: Path, kept: str, compute: Callable[[Path, Any], dict]) -> dict:
+def kept_figures(run: Path, kept: str) -> Path:
+    """Where :func:`run_figures` keeps a run's figures."""
+    return run / "evaluation" / kept
+
+
+def run_figures(run: Path, kept: str, compute: Callable[[Path, LoadedRun], dict]) -> dict:
     """A trained run's figures: read back from ``<run>/evaluation/<kept>`` where an earlier call
     kept them, else ``compute(run, loaded)`` on the loaded run (closed after) and kept there."""
-    out = run / "evaluation" / kept
+    out = kept_figures(run, kept)
     if out.exists():
         return json.loads(out.read_text())
     loaded = load_run(run)
@@ -100,14 +104,14 @@ def run_figures(run: Path, kept: str, compute: Callable[[Path, Any], dict]) -> d
 def run_rows(
     runs: Sequence[Path],
     kept: str,
-    compute: Callable[[Path, Any], dict],
+    compute: Callable[[Path, LoadedRun], dict],
     row: Callable[[Path, dict], list[str]],
     what: str,
 ) -> tuple[list[list[str]], str]:
     """A row per trained run from its figures (:func:`run_figures`), and the section's load
     line, which says how many were read back: their ``what``, which the load does not change."""
     start = os.getloadavg()
-    read_back = sum((run / "evaluation" / kept).exists() for run in runs)
+    read_back = sum(kept_figures(run, kept).exists() for run in runs)
     rows = [row(run, run_figures(run.resolve(), kept, compute)) for run in runs]
     return rows, (
         f"{load_span(start, os.getloadavg())} of this call; {read_back} of {len(runs)} runs read "

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import statistics
 from pathlib import Path
-from typing import Any
 
 from common import (
     greedy_episodes,
@@ -33,6 +32,7 @@ from torchrl.envs import EnvBase
 
 from rlpipe.envs import make_env
 from rlpipe.episodes import eval_envs
+from rlpipe.pipeline import LoadedRun
 
 
 def episode_ends(
@@ -51,7 +51,7 @@ def episode_ends(
     return ends
 
 
-def measure(run: Path, loaded: Any, episodes: int, seed: int, fall_reward: float) -> dict:
+def measure(run: Path, loaded: LoadedRun, episodes: int, seed: int, fall_reward: float) -> dict:
     """A loaded run's episodes and their ends."""
     env = make_env(loaded.cfg.env, num_envs=eval_envs(episodes), seed=seed)
     try:

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Any
 
 from common import (
     greedy_episodes,
@@ -36,6 +35,7 @@ from tensordict.nn import TensorDictModuleBase
 from rlpipe.config import EnvConfig
 from rlpipe.envs import make_env
 from rlpipe.episodes import EvalResult, eval_envs, evaluate
+from rlpipe.pipeline import LoadedRun
 
 EARLY = 200  # an episode that ends below 0 within this many steps fell at its start
 COPIES, ORDER, CAP = 16, 4, 300  # fresh copies, episodes each, steps an episode at most
@@ -61,7 +61,7 @@ def falls_by_order(policy: TensorDictModuleBase, env_cfg: EnvConfig, seed: int) 
     return counts
 
 
-def measure(run: Path, loaded: Any, episodes: int, seed: int) -> dict:
+def measure(run: Path, loaded: LoadedRun, episodes: int, seed: int) -> dict:
     """A loaded run's three measurements."""
     policy, env_cfg = loaded.algo.policy, loaded.cfg.env
     lockstep = eval_envs(episodes)
